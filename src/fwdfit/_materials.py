@@ -1,0 +1,87 @@
+"""Neutron constants of a layer's material: coherent SLD and attenuation mu(lambda).
+
+Constants come from ``periodictable`` (formula + density) or, for polycrystals
+with Bragg edges, from NCrystal (optional extra). Nothing is hand-tabulated.
+
+Attenuation model (per metre): ``mu(lambda) = mu_per_m + mu_per_m_per_A * lambda[Å]
++ mu_table(lambda)``. From a formula, ``mu_per_m`` is the free-atom coherent plus
+incoherent scattering (counted as a loss, as McStas' Refractor does: no Bragg
+edges) and ``mu_per_m_per_A`` the 1/v absorption, tabulated at 1.798 Å.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from ._errors import FwdfitError
+
+THERMAL_WAVELENGTH_A = 1.798  # wavelength at which absorption cross-sections are tabulated
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialConstants:
+    """Optical constants of one material.
+
+    sld_e6_per_A2: coherent scattering length density, 1e-6 Å^-2.
+    mu_per_m, mu_per_m_per_A: attenuation ``mu_per_m + mu_per_m_per_A * lambda[Å]``, 1/m.
+    mu_table: optional extra attenuation ``lambda_A -> 1/m`` (NCrystal Bragg edges).
+    """
+
+    sld_e6_per_A2: float
+    mu_per_m: float
+    mu_per_m_per_A: float = 0.0
+    mu_table: Callable[[np.ndarray], np.ndarray] | None = None
+
+
+def constants_from_formula(formula: str, density_g_cm3: float) -> MaterialConstants:
+    """Coherent SLD, scattering loss and 1/v absorption of a compound via periodictable."""
+    import periodictable
+    from periodictable import nsf
+
+    try:
+        compound = periodictable.formula(formula)
+    except Exception as error:  # periodictable raises several parser exception types
+        raise FwdfitError(f"unknown material {formula!r}: {error}") from None
+    if not compound.atoms:
+        raise FwdfitError(f"unknown material {formula!r}: empty formula")
+    sld, xs, _ = nsf.neutron_scattering(
+        compound, density=density_g_cm3, wavelength=THERMAL_WAVELENGTH_A
+    )
+    if sld is None:
+        raise FwdfitError(f"material {formula!r}: no neutron constants for one of its elements")
+    coherent_per_cm, absorption_per_cm, incoherent_per_cm = (float(v) for v in xs)
+    return MaterialConstants(
+        sld_e6_per_A2=float(sld[0]),
+        mu_per_m=100.0 * (coherent_per_cm + incoherent_per_cm),
+        mu_per_m_per_A=100.0 * absorption_per_cm / THERMAL_WAVELENGTH_A,
+    )
+
+
+def constants_from_ncrystal(cfg: str) -> MaterialConstants:
+    """Wavelength-dependent attenuation (Bragg edges included) and SLD from an NCrystal cfg string."""
+    try:
+        import NCrystal
+    except ImportError:
+        raise FwdfitError(
+            f"material {cfg!r} needs NCrystal: pip install 'fwdfit[ncrystal]'"
+        ) from None
+    try:
+        info = NCrystal.createInfo(cfg)
+        scatter = NCrystal.createScatter(cfg)
+        absorb = NCrystal.createAbsorption(cfg)
+    except Exception as error:  # NCrystal raises its own exception hierarchy
+        raise FwdfitError(f"NCrystal material {cfg!r}: {error}") from None
+    atoms_per_A3 = info.getNumberDensity()
+    sld_e6 = 1e6 * atoms_per_A3 * 1e-5 * sum(
+        fraction * atom.atomData.coherentScatLen() for fraction, atom in info.composition
+    )  # coherentScatLen is in fm; 1 fm = 1e-5 Å
+
+    def mu_table(wavelength_A: np.ndarray) -> np.ndarray:
+        energy = NCrystal.wl2ekin(np.asarray(wavelength_A, dtype=float))
+        barn = scatter.crossSectionIsotropic(energy) + absorb.crossSectionIsotropic(energy)
+        return 1e2 * atoms_per_A3 * 1e24 * barn * 1e-24  # (1/Å^3)(barn) -> 1/cm -> 1/m
+
+    return MaterialConstants(sld_e6_per_A2=sld_e6, mu_per_m=0.0, mu_table=mu_table)

@@ -1,0 +1,159 @@
+"""From a scene to a compiled-shape forward model: grids, windows and quadrature sizes.
+
+Everything here is static (NumPy): it decides how much work the model does.
+The accuracy knob (target RMS error in T) sets the quadrature sizes; the kernel
+windows cover every pixel a refracted or reflected ray can reach; interfaces with
+neither refractive nor attenuation contrast get no kernel; zero-thickness layers
+are skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import FwdfitError
+from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
+from ._scene import Scene
+from ._spectrum import GaussianLine, wavelength_quadrature
+
+_FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+_PSF_TRUNCATION_SIGMAS = 5.0
+_WINDOW_MARGIN = 1.3  # head-room for parameters that move during a fit
+
+
+def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float) -> tuple[int, int]:
+    """(wavelength nodes, depth nodes per half-depth) for a target RMS error in T.
+
+    Calibrated against the exact reference (benchmarks/speed_vs_error.py): errors
+    fall roughly like n^-2 in both sizes. Lines need fewer wavelength nodes than
+    white beams; short distances need more depth nodes (the refracted fan's
+    length changes by up to a factor (Delta + d/2) / (Delta - d/2) along the depth).
+    """
+    factor = math.sqrt(1e-3 / accuracy)
+    base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
+    n_lambda = max(4, math.ceil(base_lambda * factor))
+    lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
+    n_z = max(2, math.ceil(factor * (4 + 2 * math.log(lever_ratio))))
+    return n_lambda, n_z
+
+
+def check_pixels(x_um: np.ndarray, pixel_um: float, where: str) -> None:
+    """Measured x_um must be pixel centres on a uniform grid of the instrument's pixel."""
+    steps = np.diff(x_um)
+    if np.max(np.abs(steps - pixel_um)) > 1e-3 * pixel_um:
+        raise FwdfitError(f"{where}: x_um must be spaced by the instrument's pixel_um = {pixel_um} "
+                          f"(found steps {steps.min():.4g} to {steps.max():.4g})")
+
+
+def initial_params(scene: Scene, dtype=None) -> ModelParams:
+    """The scene's values as model parameters (shift 0 for every profile)."""
+    layers = scene.sample.layers
+    arr = lambda values: jnp.asarray(np.asarray(values, dtype=float), dtype=dtype)
+    return ModelParams(
+        thickness_um=arr([l.thickness_um for l in layers]),
+        sld_e6_per_A2=arr([l.sld_e6_per_A2 for l in layers]),
+        mu_per_m=arr([l.mu_per_m for l in layers]),
+        mu_per_m_per_A=arr([l.mu_per_m_per_A for l in layers]),
+        tilt_deg=arr(scene.sample.tilt_deg),
+        centre_um=arr(scene.sample.centre_um),
+        depth_mm=arr(scene.sample.depth_mm),
+        distance_mm=arr([p.distance_mm for p in scene.profiles]),
+        shift_um=arr(np.zeros(len(scene.profiles))),
+    )
+
+
+def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
+    """Interfaces that need a kernel, skipping zero-thickness layers whose thickness is fixed."""
+    layers = scene.sample.layers
+    vacuum = dict(sld_e6_per_A2=0.0, mu_per_m=0.0, mu_per_m_per_A=0.0, table=None)
+    media = [vacuum] + [dict(sld_e6_per_A2=l.sld_e6_per_A2, mu_per_m=l.mu_per_m,
+                             mu_per_m_per_A=l.mu_per_m_per_A,
+                             table=l.material.mu_table if l.material else None) for l in layers] + [vacuum]
+
+    def is_free(medium, key):
+        return 0 < medium <= len(layers) and f"layers.{layers[medium - 1].name}.{key}" in free
+
+    kept = [0] + [i + 1 for i, l in enumerate(layers)
+                  if l.thickness_um > 0 or f"layers.{l.name}.thickness_um" in free] + [len(layers) + 1]
+    faces = []
+    for left, right in zip(kept[:-1], kept[1:]):
+        refracting = (media[left]["sld_e6_per_A2"] != media[right]["sld_e6_per_A2"]
+                      or is_free(left, "sld_e6_per_A2") or is_free(right, "sld_e6_per_A2"))
+        attenuating = any(media[left][key] != media[right][key] or is_free(left, key) or is_free(right, key)
+                          for key in ("mu_per_m", "mu_per_m_per_A")) or media[left]["table"] is not media[right]["table"]
+        if refracting or attenuating:
+            faces.append(Interface(position=right - 1, left=left, right=right, refracting=refracting))
+    return tuple(faces)
+
+
+def _window_um(scene: Scene, instrument, spectrum, distance_mm: float) -> float:
+    """Half-width (µm) around an interface's projection that its kernel can reach."""
+    to_sample_um = instrument.aperture_distance_m * 1e6 - distance_mm * 1e3
+    tilt = abs(math.radians(scene.sample.tilt_deg))
+    steepest = 0.5 * instrument.aperture_mm * 1e3 / to_sample_um + tilt
+    slds = [0.0] + [l.sld_e6_per_A2 for l in scene.sample.layers]
+    lambda_max = spectrum.support_A[1]
+    k_max = lambda_max**2 * (max(slds) - min(slds)) * 1e-6 / math.pi
+    outgoing = math.sqrt(steepest**2 + k_max)
+    lever_um = distance_mm * 1e3 + 0.5 * scene.sample.depth_mm * 1e3
+    return _WINDOW_MARGIN * (outgoing * lever_um + tilt * scene.sample.depth_mm * 1e3)
+
+
+def build_model(scene: Scene, accuracy: float | None = None,
+                free: Collection[str] = ()) -> ForwardModel:
+    """The forward model for every profile of ``scene``.
+
+    accuracy: target RMS error in T (default: the scene's ``[model] accuracy``).
+    free: parameter names (as in ``[fit] vary``) that may change, so that no
+    interface whose contrast could appear is pruned.
+    """
+    accuracy = accuracy or scene.accuracy
+    plans: dict[tuple, list[int]] = {}
+    per_profile = []
+    depth_nodes = {}
+    for i, profile in enumerate(scene.profiles):
+        instrument = scene.instruments[profile.instrument]
+        spectrum = scene.spectra[profile.spectrum]
+        if profile.distance_mm <= 0.5 * scene.sample.depth_mm:
+            raise FwdfitError(f"profile {profile.name!r}: distance_mm = {profile.distance_mm} puts the "
+                              f"detector inside the sample (depth_mm = {scene.sample.depth_mm})")
+        check_pixels(profile.x_um, instrument.pixel_um, f"profile {profile.name!r}")
+        sigma = instrument.psf_fwhm_um / _FWHM_PER_SIGMA
+        n_sub = 1 if sigma == 0 else min(8, math.ceil(1.5 * instrument.pixel_um / sigma))
+        bin_um = instrument.pixel_um / n_sub
+        n_pad = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / bin_um)
+        n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
+        window = math.ceil(_window_um(scene, instrument, spectrum, profile.distance_mm) / bin_um) + 2
+        window = min(2 ** math.ceil(math.log2(window)), (n_edges - 1) // 2)  # shared plans
+        n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
+        lam, weight = wavelength_quadrature(spectrum, n_lambda)
+        first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
+        key = (profile.instrument, n_edges, n_sub, n_pad, window, len(lam))
+        plans.setdefault(key, []).append(i)
+        depth_nodes[i] = n_z
+        tables = np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
+                           for l in scene.sample.layers], axis=-1)
+        per_profile.append((first_edge, lam, weight, tables))
+    groups = []
+    for (instrument_name, n_edges, n_sub, n_pad, window, _), index in plans.items():
+        instrument = scene.instruments[instrument_name]
+        nodes, weights = np.polynomial.legendre.leggauss(max(depth_nodes[i] for i in index))
+        stack = lambda k: jnp.asarray(np.stack([per_profile[i][k] for i in index]))
+        groups.append(ProfileGroup(
+            index=tuple(index), aperture=instrument.aperture,
+            aperture_um=instrument.aperture_mm * 1e3,
+            aperture_distance_um=instrument.aperture_distance_m * 1e6,
+            psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
+            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
+            z_nodes=tuple(float(v) for v in 0.5 * (nodes + 1)),
+            z_weights=tuple(float(v) for v in 0.5 * weights),
+            first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
+            mu_table_per_m=stack(3)))
+    if any(i.fresnel for i in scene.instruments.values()):
+        raise FwdfitError(f"{scene.path}: instrument.fresnel: partial Fresnel reflection is not modelled yet")
+    return ForwardModel(groups=tuple(groups), interfaces=_interfaces(scene, free),
+                        n_profiles=len(scene.profiles))

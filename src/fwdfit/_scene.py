@@ -1,0 +1,338 @@
+"""Scene files (TOML, ../docs/SCENE.md): parsing and validation into frozen specs.
+
+Every error names the file and the key and is one line (``FwdfitError``).
+Units are those of the keys: µm, mm, m, degrees, Å, 1e-6 Å^-2, 1/m.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._errors import FwdfitError
+from ._materials import MaterialConstants, constants_from_formula, constants_from_ncrystal
+from ._spectrum import GaussianLine, Spectrum, TabulatedSpectrum
+from ._tables import read_columns
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+DEFAULT_ACCURACY = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class Layer:
+    """One layer of the stack; ``same_as`` names the earlier layer it is tied to."""
+
+    name: str
+    thickness_um: float
+    sld_e6_per_A2: float
+    mu_per_m: float
+    mu_per_m_per_A: float = 0.0
+    same_as: str | None = None
+    material: MaterialConstants | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Sample:
+    depth_mm: float
+    tilt_deg: float
+    centre_um: float
+    layers: tuple[Layer, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class Instrument:
+    aperture: str  # "square" or "circular"
+    aperture_mm: float
+    aperture_distance_m: float
+    pixel_um: float
+    psf_fwhm_um: float = 0.0
+    fresnel: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Profile:
+    """One measured or simulated profile: pixel centres ``x_um`` (n,), data if measured."""
+
+    name: str
+    distance_mm: float
+    spectrum: str
+    instrument: str
+    x_um: np.ndarray
+    T: np.ndarray | None = None
+    T_err: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSpec:
+    vary: tuple[str, ...] = ()
+    bounds: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    sample: Sample
+    instruments: dict[str, Instrument]  # "" is the default [instrument]
+    spectra: dict[str, Spectrum]
+    profiles: tuple[Profile, ...]
+    fit: FitSpec
+    accuracy: float = DEFAULT_ACCURACY
+    path: Path | None = None
+
+
+_SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "layers"}
+_LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
+               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as"}
+_INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
+                    "psf_fwhm_um", "fresnel"}
+_PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um"}
+_TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
+
+
+class _Reader:
+    """Typed access to one TOML table, with errors that name the file and key."""
+
+    def __init__(self, path: Path, table: Any, where: str, allowed: set[str]):
+        self.path, self.where = path, where
+        if not isinstance(table, dict):
+            self.fail(where, "must be a table")
+        unknown = sorted(set(table) - allowed)
+        if unknown:
+            self.fail(self.key(unknown[0]), "unknown key")
+        self.table = table
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def fail(self, key: str, message: str):
+        raise FwdfitError(f"{self.path}: {key}: {message}")
+
+    def has(self, name: str) -> bool:
+        return name in self.table
+
+    def number(self, name, default=None, *, minimum=None, positive=False) -> float:
+        if name not in self.table:
+            if default is None:
+                self.fail(self.key(name), "missing")
+            return default
+        value = self.table[name]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            self.fail(self.key(name), f"must be a finite number, got {value!r}")
+        if positive and value <= 0:
+            self.fail(self.key(name), f"must be positive, got {value}")
+        if minimum is not None and value < minimum:
+            self.fail(self.key(name), f"must be >= {minimum}, got {value}")
+        return float(value)
+
+    def string(self, name, default=None, choices=None) -> str:
+        if name not in self.table:
+            if default is None:
+                self.fail(self.key(name), "missing")
+            return default
+        value = self.table[name]
+        if not isinstance(value, str) or not value:
+            self.fail(self.key(name), f"must be a non-empty string, got {value!r}")
+        if choices and value not in choices:
+            self.fail(self.key(name), f"must be one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    def boolean(self, name, default: bool) -> bool:
+        value = self.table.get(name, default)
+        if not isinstance(value, bool):
+            self.fail(self.key(name), f"must be true or false, got {value!r}")
+        return value
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene file; profile and spectrum files are read relative to it."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as stream:
+            document = tomllib.load(stream)
+    except FileNotFoundError:
+        raise FwdfitError(f"{path}: file not found") from None
+    except tomllib.TOMLDecodeError as error:
+        raise FwdfitError(f"{path}: not valid TOML ({error})") from None
+    top = _Reader(path, document, "", _TOP_KEYS)
+    if not top.has("sample"):
+        top.fail("sample", "missing")
+    sample = _sample(path, document["sample"])
+    instruments = _instruments(path, document)
+    spectra = _spectra(path, document.get("spectra", {}))
+    profiles = _profiles(path, document.get("profiles", []), instruments, spectra)
+    fit = _fit(path, document.get("fit", {}))
+    model = _Reader(path, document.get("model", {}), "model", {"accuracy"})
+    accuracy = model.number("accuracy", DEFAULT_ACCURACY, positive=True)
+    return Scene(sample, instruments, spectra, profiles, fit, accuracy, path)
+
+
+def _sample(path: Path, table: Any) -> Sample:
+    reader = _Reader(path, table, "sample", _SAMPLE_KEYS)
+    layers_table = table.get("layers")
+    if not isinstance(layers_table, list) or not layers_table:
+        reader.fail("sample.layers", "at least one [[sample.layers]] is needed")
+    layers: list[Layer] = []
+    for index, layer_table in enumerate(layers_table):
+        layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers))
+    return Sample(
+        depth_mm=reader.number("depth_mm", positive=True),
+        tilt_deg=reader.number("tilt_deg", 0.0),
+        centre_um=reader.number("centre_um", 0.0),
+        layers=tuple(layers),
+    )
+
+
+def _layer(path: Path, table: Any, where: str, earlier: list[Layer]) -> Layer:
+    reader = _Reader(path, table, where, _LAYER_KEYS)
+    name = reader.string("name")
+    if any(layer.name == name for layer in earlier):
+        reader.fail(reader.key("name"), f"duplicate layer name {name!r}")
+    if reader.has("same_as"):
+        target = reader.string("same_as")
+        others = sorted(set(table) - {"name", "same_as"})
+        if others:
+            reader.fail(reader.key(others[0]), "a same_as layer takes every other key from its twin")
+        tied = next((layer for layer in earlier if layer.name == target), None)
+        if tied is None:
+            reader.fail(reader.key("same_as"), f"names no earlier layer: {target!r}")
+        root = tied.same_as or tied.name
+        return dataclasses.replace(tied, name=name, same_as=root)
+    material = None
+    if reader.has("material") or reader.has("ncrystal"):
+        material = _material(reader)
+    explicit = {key: reader.number(key) for key in ("sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")
+                if reader.has(key)}
+    if material is None and not {"sld_e6_per_A2", "mu_per_m"} <= explicit.keys():
+        reader.fail(where, "needs a material (material + density_g_cm3, or ncrystal) "
+                    "or both sld_e6_per_A2 and mu_per_m")
+    if "mu_per_m" in explicit and explicit["mu_per_m"] < 0:
+        reader.fail(reader.key("mu_per_m"), "must be >= 0")
+    base = material or MaterialConstants(0.0, 0.0)
+    return Layer(
+        name=name,
+        thickness_um=reader.number("thickness_um", minimum=0.0),
+        sld_e6_per_A2=explicit.get("sld_e6_per_A2", base.sld_e6_per_A2),
+        mu_per_m=explicit.get("mu_per_m", base.mu_per_m),
+        mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
+                                    if "mu_per_m" not in explicit else 0.0),
+        material=material,
+    )
+
+
+def _material(reader: _Reader) -> MaterialConstants:
+    try:
+        if reader.has("ncrystal"):
+            return constants_from_ncrystal(reader.string("ncrystal"))
+        formula = reader.string("material")
+        density = reader.number("density_g_cm3", positive=True)
+        return constants_from_formula(formula, density)
+    except FwdfitError as error:
+        key = "ncrystal" if reader.has("ncrystal") else "material"
+        reader.fail(reader.key(key), str(error))
+
+
+def _instrument(path: Path, table: Any, where: str) -> Instrument:
+    reader = _Reader(path, table, where, _INSTRUMENT_KEYS)
+    return Instrument(
+        aperture=reader.string("aperture", choices=("square", "circular")),
+        aperture_mm=reader.number("aperture_mm", positive=True),
+        aperture_distance_m=reader.number("aperture_distance_m", positive=True),
+        pixel_um=reader.number("pixel_um", positive=True),
+        psf_fwhm_um=reader.number("psf_fwhm_um", 0.0, minimum=0.0),
+        fresnel=reader.boolean("fresnel", False),
+    )
+
+
+def _instruments(path: Path, document: dict) -> dict[str, Instrument]:
+    instruments = {}
+    if "instrument" in document:
+        instruments[""] = _instrument(path, document["instrument"], "instrument")
+    extra = document.get("instruments", {})
+    if not isinstance(extra, dict):
+        raise FwdfitError(f"{path}: instruments: must be a table of named instruments")
+    for name, table in extra.items():
+        instruments[name] = _instrument(path, table, f"instruments.{name}")
+    if not instruments:
+        raise FwdfitError(f"{path}: instrument: missing")
+    return instruments
+
+
+def _spectra(path: Path, table: Any) -> dict[str, Spectrum]:
+    if not isinstance(table, dict) or not table:
+        raise FwdfitError(f"{path}: spectra: at least one [spectra.NAME] is needed")
+    spectra = {}
+    for name, entry in table.items():
+        where = f"spectra.{name}"
+        reader = _Reader(path, entry, where, {"file", "wavelength_A", "fwhm_rel"})
+        try:
+            if reader.has("file"):
+                columns = read_columns(path.parent / reader.string("file"), ["lambda_A", "weight"])
+                spectra[name] = TabulatedSpectrum(columns["lambda_A"], columns["weight"])
+            else:
+                spectra[name] = GaussianLine(reader.number("wavelength_A", positive=True),
+                                             reader.number("fwhm_rel", minimum=0.0))
+        except FwdfitError as error:
+            reader.fail(where, str(error))
+    return spectra
+
+
+def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
+    if not isinstance(table, list) or not table:
+        raise FwdfitError(f"{path}: profiles: at least one [[profiles]] is needed")
+    profiles = []
+    for index, entry in enumerate(table):
+        reader = _Reader(path, entry, f"profiles[{index}]", _PROFILE_KEYS)
+        name = reader.string("name")
+        if any(p.name == name for p in profiles):
+            reader.fail(reader.key("name"), f"duplicate profile name {name!r}")
+        spectrum = reader.string("spectrum")
+        if spectrum not in spectra:
+            reader.fail(reader.key("spectrum"), f"no [spectra.{spectrum}] in the scene")
+        instrument = reader.string("instrument", "")
+        if instrument not in instruments:
+            reader.fail(reader.key("instrument"), f"no instrument named {instrument!r}")
+        pixel_um = instruments[instrument].pixel_um
+        T = T_err = None
+        if reader.has("file"):
+            columns = read_columns(path.parent / reader.string("file"), ["x_um", "T"], ["T_err"])
+            x_um, T, T_err = columns["x_um"], columns["T"], columns.get("T_err")
+            if T_err is not None and np.any(T_err <= 0):
+                reader.fail(reader.key("file"), "T_err must be > 0 everywhere")
+            if np.any(np.diff(x_um) <= 0):
+                reader.fail(reader.key("file"), "x_um must increase")
+        else:
+            x_min, x_max = reader.number("x_min_um"), reader.number("x_max_um")
+            n_pixels = int(math.floor((x_max - x_min) / pixel_um + 1e-6))
+            if n_pixels < 2:
+                reader.fail(reader.key("x_max_um"), "the pixel grid needs x_max_um > x_min_um + 2 pixels")
+            x_um = x_min + (np.arange(n_pixels) + 0.5) * pixel_um
+        profiles.append(Profile(name, reader.number("distance_mm", positive=True), spectrum,
+                                instrument, x_um, T, T_err))
+    return tuple(profiles)
+
+
+def _fit(path: Path, table: Any) -> FitSpec:
+    reader = _Reader(path, table, "fit", {"vary", "bounds"})
+    vary = table.get("vary", [])
+    if not isinstance(vary, list) or not all(isinstance(v, str) for v in vary):
+        reader.fail("fit.vary", "must be a list of parameter names")
+    bounds_table = table.get("bounds", {})
+    if not isinstance(bounds_table, dict):
+        reader.fail("fit.bounds", "must be a table of name = [low, high]")
+    bounds = {}
+    for name, pair in bounds_table.items():
+        ok = (isinstance(pair, list) and len(pair) == 2
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair))
+        if not ok:
+            reader.fail(f"fit.bounds.{name}", "must be [low, high]")
+        if not pair[0] < pair[1]:
+            reader.fail(f"fit.bounds.{name}", f"low must be below high, got {pair}")
+        bounds[name] = (float(pair[0]), float(pair[1]))
+    return FitSpec(tuple(vary), bounds)
