@@ -1,5 +1,27 @@
-"""fwdfit: differentiable forward-model fitting of refraction at interfaces in neutron radiographs."""
+"""fwdfit: differentiable forward-model fitting of refraction at interfaces in neutron radiographs.
+
+The flow: scene file -> ``load_scene`` -> ``build_model`` + ``initial_params`` ->
+``ForwardModel(params)`` gives (T, T_att) per profile -> ``fit`` -> result.
+"""
 
 from ._errors import FwdfitError as FwdfitError
+from ._materials import MaterialConstants as MaterialConstants
+from ._materials import constants_from_formula as constants_from_formula
+from ._model import ForwardModel as ForwardModel
+from ._model import ModelParams as ModelParams
+from ._paganin import paganin_filter_1d as paganin_filter_1d
+from ._paganin import paganin_filter_2d as paganin_filter_2d
+from ._paganin import paganin_tau_um2 as paganin_tau_um2
+from ._paganin import paganin_tau_um2_spectrum as paganin_tau_um2_spectrum
+from ._paganin import paganin_thickness_um as paganin_thickness_um
+from ._plan import build_model as build_model
+from ._plan import initial_params as initial_params
+from ._radiograph import profile_from_stacks as profile_from_stacks
+from ._reference import ReferenceLayer as ReferenceLayer
+from ._reference import trace_reference as trace_reference
+from ._scene import Scene as Scene
+from ._scene import load_scene as load_scene
+from ._simulate import SimulatedProfile as SimulatedProfile
+from ._simulate import simulate as simulate
 
 __version__ = "0.1.0"

@@ -205,11 +205,23 @@ def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, 
         kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, 0))
         C_T, C_att = kernel(group, sides, distance_um, wavelength_weight, depth_um, refracting,
                             sign[:, None] * window_edges)
-        cells = (start[:, None] + jnp.arange(n_window - 1)).ravel()
         scale = sign[:, None] / group.bin_um
-        T = T.at[cells].add((scale * jnp.diff(C_T, axis=1)).ravel())
-        T_att = T_att.at[cells].add((scale * jnp.diff(C_att, axis=1)).ravel())
+        T = T + _place(scale * jnp.diff(C_T, axis=1), start, T.shape[0])
+        T_att = T_att + _place(scale * jnp.diff(C_att, axis=1), start, T.shape[0])
     return T, T_att
+
+
+def _place(windows, starts, n_bins: int):
+    """Sum of windows (n_face, w) placed at bins starts (n_face,) of a zero array (n_bins,).
+
+    Dense updates rather than a scatter-add: XLA's CPU scatter is serial and its
+    forward-mode derivative costs far more than these few dense adds.
+    """
+    total = jnp.zeros((n_bins,), windows.dtype)
+    for row in range(windows.shape[0]):
+        placed = jax.lax.dynamic_update_slice(jnp.zeros((n_bins,), windows.dtype), windows[row], (starts[row],))
+        total = total + placed
+    return total
 
 
 def _blur_and_bin(group: ProfileGroup, values):

@@ -22,7 +22,8 @@ from ._spectrum import GaussianLine, wavelength_quadrature
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
-_WINDOW_MARGIN = 1.3  # head-room for parameters that move during a fit
+_WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
+_WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 
 
 def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float) -> tuple[int, int]:
@@ -37,7 +38,7 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
     n_lambda = max(4, math.ceil(base_lambda * factor))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
-    n_z = max(2, math.ceil(factor * (4 + 2 * math.log(lever_ratio))))
+    n_z = max(2, math.ceil(factor * (3 + 2.5 * math.log(lever_ratio))))
     return n_lambda, n_z
 
 
@@ -62,7 +63,7 @@ def initial_params(scene: Scene, dtype=None) -> ModelParams:
         centre_um=arr(scene.sample.centre_um),
         depth_mm=arr(scene.sample.depth_mm),
         distance_mm=arr([p.distance_mm for p in scene.profiles]),
-        shift_um=arr(np.zeros(len(scene.profiles))),
+        shift_um=arr([p.shift_um + scene.sample.drift_um_per_mm * p.distance_mm for p in scene.profiles]),
     )
 
 
@@ -90,7 +91,7 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
     return tuple(faces)
 
 
-def _window_um(scene: Scene, instrument, spectrum, distance_mm: float) -> float:
+def _window_um(scene: Scene, instrument, spectrum, distance_mm: float, margin: float) -> float:
     """Half-width (µm) around an interface's projection that its kernel can reach."""
     to_sample_um = instrument.aperture_distance_m * 1e6 - distance_mm * 1e3
     tilt = abs(math.radians(scene.sample.tilt_deg))
@@ -100,7 +101,12 @@ def _window_um(scene: Scene, instrument, spectrum, distance_mm: float) -> float:
     k_max = lambda_max**2 * (max(slds) - min(slds)) * 1e-6 / math.pi
     outgoing = math.sqrt(steepest**2 + k_max)
     lever_um = distance_mm * 1e3 + 0.5 * scene.sample.depth_mm * 1e3
-    return _WINDOW_MARGIN * (outgoing * lever_um + tilt * scene.sample.depth_mm * 1e3)
+    return margin * (outgoing * lever_um + tilt * scene.sample.depth_mm * 1e3)
+
+
+def _ladder(n: int) -> int:
+    """Round up to 16 * 2^(k/2) so that profiles at similar distances share one plan."""
+    return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
 
 
 def build_model(scene: Scene, accuracy: float | None = None,
@@ -127,8 +133,9 @@ def build_model(scene: Scene, accuracy: float | None = None,
         bin_um = instrument.pixel_um / n_sub
         n_pad = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / bin_um)
         n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
-        window = math.ceil(_window_um(scene, instrument, spectrum, profile.distance_mm) / bin_um) + 2
-        window = min(2 ** math.ceil(math.log2(window)), (n_edges - 1) // 2)  # shared plans
+        margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
+        window = math.ceil(_window_um(scene, instrument, spectrum, profile.distance_mm, margin) / bin_um) + 2
+        window = min(_ladder(window), (n_edges - 1) // 2)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
         lam, weight = wavelength_quadrature(spectrum, n_lambda)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um

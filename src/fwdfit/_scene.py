@@ -41,10 +41,14 @@ class Layer:
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
+    """The layer stack; ``drift_um_per_mm`` shifts each profile by drift * distance_mm
+    (a stage or beam-axis misalignment)."""
+
     depth_mm: float
     tilt_deg: float
     centre_um: float
     layers: tuple[Layer, ...]
+    drift_um_per_mm: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +63,11 @@ class Instrument:
 
 @dataclasses.dataclass(frozen=True)
 class Profile:
-    """One measured or simulated profile: pixel centres ``x_um`` (n,), data if measured."""
+    """One measured or simulated profile: pixel centres ``x_um`` (n,), data if measured.
+
+    Nuisances: the prediction is ``norm * T + background`` with the sample shifted
+    sideways by ``shift_um``; ``file`` is the measured table's path, if any.
+    """
 
     name: str
     distance_mm: float
@@ -68,6 +76,10 @@ class Profile:
     x_um: np.ndarray
     T: np.ndarray | None = None
     T_err: np.ndarray | None = None
+    shift_um: float = 0.0
+    norm: float = 1.0
+    background: float = 0.0
+    file: Path | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,12 +99,13 @@ class Scene:
     path: Path | None = None
 
 
-_SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "layers"}
+_SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "drift_um_per_mm", "layers"}
 _LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
                "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as"}
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
-_PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um"}
+_PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um",
+                 "shift_um", "norm", "background"}
 _TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
 
 
@@ -186,6 +199,7 @@ def _sample(path: Path, table: Any) -> Sample:
         tilt_deg=reader.number("tilt_deg", 0.0),
         centre_um=reader.number("centre_um", 0.0),
         layers=tuple(layers),
+        drift_um_per_mm=reader.number("drift_um_per_mm", 0.0),
     )
 
 
@@ -299,9 +313,10 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         if instrument not in instruments:
             reader.fail(reader.key("instrument"), f"no instrument named {instrument!r}")
         pixel_um = instruments[instrument].pixel_um
-        T = T_err = None
+        T = T_err = file = None
         if reader.has("file"):
-            columns = read_columns(path.parent / reader.string("file"), ["x_um", "T"], ["T_err"])
+            file = path.parent / reader.string("file")
+            columns = read_columns(file, ["x_um", "T"], ["T_err"])
             x_um, T, T_err = columns["x_um"], columns["T"], columns.get("T_err")
             if T_err is not None and np.any(T_err <= 0):
                 reader.fail(reader.key("file"), "T_err must be > 0 everywhere")
@@ -313,8 +328,10 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             if n_pixels < 2:
                 reader.fail(reader.key("x_max_um"), "the pixel grid needs x_max_um > x_min_um + 2 pixels")
             x_um = x_min + (np.arange(n_pixels) + 0.5) * pixel_um
-        profiles.append(Profile(name, reader.number("distance_mm", positive=True), spectrum,
-                                instrument, x_um, T, T_err))
+        profiles.append(Profile(
+            name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
+            shift_um=reader.number("shift_um", 0.0), norm=reader.number("norm", 1.0, positive=True),
+            background=reader.number("background", 0.0), file=file))
     return tuple(profiles)
 
 

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from ._errors import FwdfitError
+from ._paganin_scene import MODES as PAGANIN_MODES
 from ._profile_cli import add_profile_parser
 
 
@@ -31,6 +32,26 @@ def _run_simulate(args) -> None:
     print(f"wrote {len(profiles)} profile(s) to {args.out}")
 
 
+def _run_paganin(args) -> None:
+    from ._paganin_scene import paganin_layer, paganin_profiles
+    from ._scene import load_scene
+    from ._tables import write_columns
+
+    scene = load_scene(args.scene)
+    profiles = paganin_profiles(scene, material=args.material, b_factor=args.b_factor,
+                                mode=args.mode)
+    layer = paganin_layer(scene, args.material).name
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for p in profiles:
+        write_columns(out / f"{p.name}.csv", {"x_um": p.x_um, "T": p.T, "T_filtered": p.T_filtered})
+    chosen = "as named" if args.material else "the thickest layer; --material to choose"
+    print(f"filter constants of layer {layer} ({chosen}), b_factor {args.b_factor:g}, mode {args.mode}")
+    for p in profiles:
+        print(f"{p.name}: tau = {p.tau_um2:.6g} um^2 (kernel length {p.tau_um2 ** 0.5:.3g} um) "
+              f"-> {out / (p.name + '.csv')}")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -40,6 +61,22 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument("--accuracy", type=float, default=None,
                           help="target RMS error in T (default: the scene's, else 1e-3)")
     simulate.set_defaults(handler=_run_simulate)
+    paganin = commands.add_parser(
+        "paganin", help="apply the single-material Paganin-type filter to every measured profile",
+        description="T_filtered = F^-1[F[T] / (1 + tau k^2)] with tau from one layer's SLD and "
+                    "mu, the profile's wavelength, distance and beam divergence D/L; writes "
+                    "DIR/<profile>.csv with columns x_um,T,T_filtered.")
+    paganin.add_argument("scene", help="scene file (TOML) whose profiles are measured (file =)")
+    paganin.add_argument("--out", required=True, metavar="DIR", help="output folder for <profile>.csv")
+    paganin.add_argument("--b-factor", type=float, default=1.0, metavar="F",
+                         help="multiplies the layer's SLD in tau (default 1; the paper needed 40)")
+    paganin.add_argument("--material", metavar="LAYER", default=None,
+                         help="layer whose constants the filter uses (default: the thickest)")
+    paganin.add_argument("--mode", choices=PAGANIN_MODES,
+                         default="mean_wavelength",
+                         help="tau at the spectrum's mean wavelength (default) or averaged "
+                              "over the spectrum")
+    paganin.set_defaults(handler=_run_paganin)
     add_profile_parser(commands)
     return parser
 

@@ -1,0 +1,188 @@
+"""Free parameters: names as in ``[fit] vary``, bounds, and the maps between
+the solver's unconstrained coordinates, physical values and model parameters.
+
+Names: ``sample.tilt_deg``, ``sample.centre_um``, ``sample.depth_mm``,
+``sample.drift_um_per_mm``, ``layers.<layer>.<thickness_um | sld_e6_per_A2 |
+mu_per_m | mu_per_m_per_A>``, ``profiles.<profile>.<distance_mm | shift_um | norm |
+background>``; ``profiles.*.<key>`` frees one parameter per profile. A layer
+tied with ``same_as`` shares its twin's parameters under either name.
+
+Bounds are enforced by transforms (a sigmoid between two bounds, an exponential
+above a lower bound), so the solver works unconstrained.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import FwdfitError
+from ._model import ModelParams
+from ._plan import initial_params
+from ._scene import Scene
+
+_INF = math.inf
+# key: (model field, default bounds as a function of the scene value, typical step)
+_LAYER_KEYS = {
+    "thickness_um": ((0.0, _INF), 1.0),
+    "sld_e6_per_A2": ((0.0, _INF), 0.1),
+    "mu_per_m": ((0.0, _INF), 1.0),
+    "mu_per_m_per_A": ((0.0, _INF), 0.1),
+}
+_SAMPLE_KEYS = {
+    "tilt_deg": ((-5.0, 5.0), 0.01),
+    "centre_um": ((-_INF, _INF), 1.0),
+    "depth_mm": ((0.0, _INF), 0.01),
+    "drift_um_per_mm": ((-_INF, _INF), 0.01),
+}
+_PROFILE_KEYS = {
+    "distance_mm": ((0.0, _INF), 0.1),
+    "shift_um": ((-_INF, _INF), 1.0),
+    "norm": ((0.0, _INF), 0.01),
+    "background": ((-_INF, _INF), 0.001),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class FreeParameter:
+    """One free parameter: its name, scene value, bounds and typical step (scene units)."""
+
+    name: str
+    value: float
+    low: float
+    high: float
+    step: float
+    target: tuple  # (field, indices) it sets
+
+    # Solver coordinates u are in units of ``step`` near the start: Levenberg-Marquardt
+    # damping then treats all parameters alike. Between two bounds a widened sigmoid,
+    # above (below) one bound a softplus, which stays linear far from the bound and
+    # keeps a useful gradient close to it.
+
+    def to_unit(self, value):
+        """Physical value -> unconstrained coordinate."""
+        if math.isfinite(self.low) and math.isfinite(self.high):
+            fraction = (value - self.low) / (self.high - self.low)
+            return self._width * (jnp.log(fraction) - jnp.log1p(-fraction))
+        if math.isfinite(self.low) or math.isfinite(self.high):
+            gap = (value - self.low) if math.isfinite(self.low) else (self.high - value)
+            x = gap / self.step
+            return x + jnp.log(-jnp.expm1(-x))  # inverse softplus, stable for large x
+        return (value - self.value) / self.step
+
+    def from_unit(self, u):
+        """Unconstrained coordinate -> physical value (inside the bounds)."""
+        if math.isfinite(self.low) and math.isfinite(self.high):
+            return self.low + (self.high - self.low) * jax.nn.sigmoid(u / self._width)
+        if math.isfinite(self.low):
+            return self.low + self.step * jax.nn.softplus(u)
+        if math.isfinite(self.high):
+            return self.high - self.step * jax.nn.softplus(u)
+        return self.value + self.step * u
+
+    @property
+    def _width(self) -> float:
+        """Sigmoid scale giving slope ``step`` per unit at the middle of the box."""
+        return max((self.high - self.low) / (4.0 * self.step), 1.0)
+
+
+def _resolve(scene: Scene, name: str) -> list[tuple[str, str, tuple, tuple, float]]:
+    """(canonical name, key, field target, default bounds, step) for one ``vary`` entry."""
+    parts = name.split(".")
+    layers = {layer.name: layer for layer in scene.sample.layers}
+    if parts[0] == "sample" and len(parts) == 2 and parts[1] in _SAMPLE_KEYS:
+        bounds, step = _SAMPLE_KEYS[parts[1]]
+        return [(name, parts[1], (parts[1], ()), bounds, step)]
+    if parts[0] == "layers" and len(parts) >= 3 and parts[-1] in _LAYER_KEYS:
+        layer = layers.get(".".join(parts[1:-1]))
+        if layer is not None:
+            root = layer.same_as or layer.name
+            tied = tuple(i for i, l in enumerate(scene.sample.layers) if (l.same_as or l.name) == root)
+            bounds, step = _LAYER_KEYS[parts[-1]]
+            return [(f"layers.{root}.{parts[-1]}", parts[-1], (parts[-1], tied), bounds, step)]
+    if parts[0] == "profiles" and len(parts) >= 3 and parts[-1] in _PROFILE_KEYS:
+        label = ".".join(parts[1:-1])
+        names = [p.name for p in scene.profiles]
+        chosen = range(len(names)) if label == "*" else [names.index(label)] if label in names else []
+        bounds, step = _PROFILE_KEYS[parts[-1]]
+        return [(f"profiles.{names[i]}.{parts[-1]}", parts[-1], (parts[-1], (i,)), bounds, step)
+                for i in chosen]
+    raise FwdfitError(f"{scene.path}: fit.vary: unknown parameter {name!r} (see the parameter "
+                      "names in SCENE.md: sample.KEY, layers.LAYER.KEY, profiles.PROFILE.KEY)")
+
+
+def _scene_value(scene: Scene, key: str, target: tuple) -> float:
+    field, index = target
+    if key in _LAYER_KEYS:
+        return getattr(scene.sample.layers[index[0]], key)
+    if key in _PROFILE_KEYS:
+        return getattr(scene.profiles[index[0]], key)
+    return getattr(scene.sample, key)
+
+
+def free_parameters(scene: Scene, vary=None, bounds=None) -> tuple[FreeParameter, ...]:
+    """The free parameters named by ``vary`` (default the scene's ``[fit] vary``)."""
+    vary = scene.fit.vary if vary is None else tuple(vary)
+    bounds = scene.fit.bounds if bounds is None else dict(bounds)
+    if not vary:
+        raise FwdfitError(f"{scene.path}: fit.vary: no parameter to fit")
+    free, seen = [], set()
+    for entry in vary:
+        for canonical, key, target, default, step in _resolve(scene, entry):
+            if canonical in seen:
+                continue
+            seen.add(canonical)
+            low, high = bounds.get(entry, bounds.get(canonical, default))
+            if key == "distance_mm" and entry not in bounds:
+                low = 0.5 * scene.sample.depth_mm
+            value = _scene_value(scene, key, target)
+            if not low <= value <= high:
+                raise FwdfitError(f"{scene.path}: fit.bounds.{entry}: start value {value} "
+                                  f"is outside [{low}, {high}]")
+            if value in (low, high) and key != "background":
+                value = value + (0.01 * step if value == low else -0.01 * step)
+            free.append(FreeParameter(canonical, value, low, high, step, target))
+    unknown = sorted(set(bounds) - set(vary) - seen)
+    if unknown:
+        raise FwdfitError(f"{scene.path}: fit.bounds.{unknown[0]}: not a parameter named in fit.vary")
+    return tuple(free)
+
+
+class Assembler(eqx.Module):
+    """Physical values (n_free,) -> (ModelParams, norm (n_profile,), background (n_profile,))."""
+
+    base: ModelParams
+    profile_shift_um: jax.Array
+    drift_um_per_mm: jax.Array
+    norm: jax.Array
+    background: jax.Array
+    targets: tuple = eqx.field(static=True)
+
+    def __call__(self, values):
+        fields = {f.name: getattr(self.base, f.name) for f in dataclasses.fields(ModelParams)}
+        extra = {"shift_um": self.profile_shift_um, "drift_um_per_mm": self.drift_um_per_mm,
+                 "norm": self.norm, "background": self.background}
+        for i, (field, index) in enumerate(self.targets):
+            store = extra if field in extra else fields
+            current = store[field]
+            store[field] = current.at[np.asarray(index)].set(values[i]) if index else values[i]
+        fields["shift_um"] = extra["shift_um"] + extra["drift_um_per_mm"] * fields["distance_mm"]
+        return ModelParams(**fields), extra["norm"], extra["background"]
+
+
+def assembler(scene: Scene, free: tuple[FreeParameter, ...], dtype=None) -> Assembler:
+    """The map from free values to model inputs, with every other value from the scene."""
+    as_array = lambda values: jnp.asarray(np.asarray(values, float), dtype)
+    return Assembler(
+        base=initial_params(scene, dtype),
+        profile_shift_um=as_array([p.shift_um for p in scene.profiles]),
+        drift_um_per_mm=as_array(scene.sample.drift_um_per_mm),
+        norm=as_array([p.norm for p in scene.profiles]),
+        background=as_array([p.background for p in scene.profiles]),
+        targets=tuple(p.target for p in free),
+    )

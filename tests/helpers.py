@@ -1,0 +1,313 @@
+"""Test helpers: reference tables, scene files written on the fly, edge metrics, exact
+straight-ray Beer-Lambert profiles and central differences.
+
+Everything here is NumPy (or plain JAX calls of the public API) and independent of the
+model's internals, so it can serve as the reference the model is checked against.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+DATA = Path(__file__).parent / "data"
+MCSTAS = DATA / "mcstas"
+RAYTRACE = DATA / "raytrace"
+BOA_SPECTRUM = MCSTAS / "spectrum_boa.csv"
+
+
+# --------------------------------------------------------------------------- reference tables
+
+
+def read_table(path: Path) -> dict[str, np.ndarray]:
+    """A CSV table with a header row, as a dict of float columns."""
+    path = Path(path)
+    header = path.open().readline().strip().split(",")
+    rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    return {name.strip(): rows[:, i] for i, name in enumerate(header)}
+
+
+def load_reference(case_dir: Path, name: str) -> dict[str, np.ndarray]:
+    """One reference profile as ``x_um, T, T_err, T_att, T_att_err`` (n_pixel,) arrays.
+
+    McStas folders hold ``<name>.csv`` (x_um,T,T_err,T_err_uncorr) and a separate run
+    ``<name>_attenuation_only.csv`` whose T column is T_att; ray-tracer folders hold
+    both in ``<name>.csv`` (x_um,T,T_err,T_att,T_att_err).
+    """
+    case_dir = Path(case_dir)
+    main = read_table(case_dir / f"{name}.csv")
+    if "T_att" in main:
+        return {k: main[k] for k in ("x_um", "T", "T_err", "T_att", "T_att_err")}
+    att = read_table(case_dir / f"{name}_attenuation_only.csv")
+    if not np.array_equal(att["x_um"], main["x_um"]):
+        raise ValueError(f"{case_dir}/{name}: the attenuation-only run has another pixel grid")
+    return {"x_um": main["x_um"], "T": main["T"], "T_err": main["T_err"],
+            "T_att": att["T"], "T_att_err": att["T_err"]}
+
+
+# --------------------------------------------------------------------------- edge metrics
+
+
+def smoothing_pixels(distance_mm: float, aperture_mm: float, aperture_distance_m: float,
+                     pixel_um: float) -> int:
+    """Running-mean width (pixels) used before taking extrema: an eighth of the penumbra.
+
+    The penumbra Delta * D / L sets the width of the edge features at distance Delta
+    (6 µm = 2.5 pixels at 1.1 mm, 180 µm = 75 pixels at 34.4 mm for BOA). A running mean
+    over an eighth of it is 1 pixel (none) up to 4.8 mm and 9 pixels at 34.4 mm: it
+    averages the reference's Monte Carlo noise (single-bin errors reach 5-10 % of the
+    small far-distance peaks) down by up to 3x and lowers those peaks by at most ~25 %,
+    identically for model and reference.
+    """
+    penumbra_um = distance_mm * 1e3 * aperture_mm / (aperture_distance_m * 1e3)
+    return max(1, int(penumbra_um / (8.0 * pixel_um)))
+
+
+def running_mean(values: np.ndarray, n: int) -> np.ndarray:
+    """Centred running mean over n pixels, edges extended with their end values."""
+    if n <= 1:
+        return np.asarray(values, float)
+    padded = np.pad(np.asarray(values, float), n, mode="edge")
+    return np.convolve(padded, np.ones(n) / n, mode="same")[n:-n]
+
+
+def edge_heights(x_um, T, T_att_baseline, centre_um: float, n_smooth: int):
+    """Gain-peak height and loss-dip depth at each edge: ``[(gain, loss) left, (gain, loss) right]``.
+
+    T and the baseline are first smoothed by ``running_mean(., n_smooth)``. On each side
+    of the sample (x < centre, x > centre):
+
+    - gain = max(T) - 1: how far the refracted and reflected rays lift the open beam
+      just outside the edge;
+    - loss = T_att_baseline(x_min) - T(x_min), x_min where T is smallest: how far the
+      dip inside the edge falls below the attenuation-only profile, i.e. the refraction
+      signal, not the attenuation.
+
+    Model and reference are compared with the same function, the same ``n_smooth`` and
+    the same baseline (the reference's T_att), so a difference is a difference in T.
+    """
+    x_um = np.asarray(x_um)
+    T_s, base_s = running_mean(T, n_smooth), running_mean(T_att_baseline, n_smooth)
+    heights = []
+    for side in (x_um < centre_um, x_um > centre_um):
+        t, b = T_s[side], base_s[side]
+        i = int(np.argmin(t))
+        heights.append((float(t.max() - 1.0), float(b[i] - t[i])))
+    return heights
+
+
+def rms(a) -> float:
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+# --------------------------------------------------------------------------- scenes on the fly
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (int, float)):
+        return repr(float(value)) if isinstance(value, float) else str(value)
+    raise TypeError(f"no TOML for {value!r}")
+
+
+def scene_text(layers, *, profiles, spectrum, depth_mm=2.0, tilt_deg=0.0, centre_um=0.0,
+               aperture="square", aperture_mm=40.0, aperture_distance_m=7.5, pixel_um=2.4,
+               psf_fwhm_um=0.0) -> str:
+    """A scene file with one instrument and one spectrum named ``s``.
+
+    layers: list of dicts of layer keys; profiles: list of (name, distance_mm, x_min_um,
+    x_max_um); spectrum: dict of spectrum keys (``file`` may be an absolute path).
+    """
+    lines = ["[sample]", f"depth_mm = {_toml_value(float(depth_mm))}",
+             f"tilt_deg = {_toml_value(float(tilt_deg))}",
+             f"centre_um = {_toml_value(float(centre_um))}", ""]
+    for layer in layers:
+        lines.append("[[sample.layers]]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in layer.items()]
+        lines.append("")
+    lines += ["[instrument]", f'aperture = "{aperture}"',
+              f"aperture_mm = {_toml_value(float(aperture_mm))}",
+              f"aperture_distance_m = {_toml_value(float(aperture_distance_m))}",
+              f"pixel_um = {_toml_value(float(pixel_um))}",
+              f"psf_fwhm_um = {_toml_value(float(psf_fwhm_um))}", "fresnel = false", "",
+              "[spectra.s]"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in spectrum.items()]
+    lines.append("")
+    for name, distance_mm, x_min_um, x_max_um in profiles:
+        lines += ["[[profiles]]", f'name = "{name}"',
+                  f"distance_mm = {_toml_value(float(distance_mm))}", 'spectrum = "s"',
+                  f"x_min_um = {_toml_value(float(x_min_um))}",
+                  f"x_max_um = {_toml_value(float(x_max_um))}", ""]
+    return "\n".join(lines)
+
+
+def write_scene(folder: Path, *args, name: str = "scene.toml", **kwargs):
+    """Write ``scene_text(*args, **kwargs)`` to ``folder/name`` and load it."""
+    from fwdfit import load_scene
+
+    path = Path(folder) / name
+    path.write_text(scene_text(*args, **kwargs))
+    return load_scene(path)
+
+
+def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0) -> dict:
+    return {"name": name, "thickness_um": float(thickness_um), "sld_e6_per_A2": float(sld),
+            "mu_per_m": float(mu), "mu_per_m_per_A": float(mu_per_A)}
+
+
+def boa_spectrum() -> tuple[np.ndarray, np.ndarray]:
+    """The BOA white-beam table (lambda_A, weight) used by the shared references."""
+    table = read_table(BOA_SPECTRUM)
+    return table["lambda_A"], table["weight"]
+
+
+def gaussian_line_table(wavelength_A: float, fwhm_rel: float, n: int = 401):
+    """A Gaussian line as a fine table (lambda_A, weight) over +-4 sigma, for the tracer."""
+    sigma = fwhm_rel * wavelength_A / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    lam = np.linspace(wavelength_A - 4 * sigma, wavelength_A + 4 * sigma, n)
+    return lam, np.exp(-0.5 * ((lam - wavelength_A) / sigma) ** 2)
+
+
+# --------------------------------------------------------------------------- exact Beer-Lambert
+
+
+def spectrum_average_transmission(lam, weight, mu_per_m, mu_per_m_per_A, length_um):
+    """<exp(-(mu0 + mu1 lambda) l)> over a piecewise-linear spectrum table, for path lengths l."""
+    fine = np.linspace(lam[0], lam[-1], 20001)
+    density = np.interp(fine, lam, weight)
+    mu = (mu_per_m + mu_per_m_per_A * fine) * 1e-6  # 1/µm
+    length_um = np.atleast_1d(np.asarray(length_um, float))
+    values = np.exp(-np.outer(length_um, mu)) @ density / density.sum()
+    return values
+
+
+def straight_ray_profile(x_um, pixel_um, *, thickness_um, mu_per_m, mu_per_m_per_A, depth_mm,
+                         tilt_deg, centre_um, aperture, aperture_mm, aperture_distance_m,
+                         distance_mm, lam, weight, n_sub=24, n_aperture=600):
+    """Pixel-averaged transmission of one homogeneous block for straight rays, by brute force.
+
+    Every ray from an aperture point x_ap to a detector point X is a straight line; its
+    length inside the (tilted) rectangle is found by clipping the line against the
+    rectangle's two pairs of faces in the sample frame, and its transmission is the
+    spectrum average of exp(-mu(lambda) * length) (tabulated against length). The pixel
+    average is a midpoint rule over n_sub points per pixel and n_aperture points over the
+    aperture's x-marginal (uniform: square; sqrt(1 - v^2): circular). No refraction.
+    """
+    L_um, delta_um, D_um = aperture_distance_m * 1e6, distance_mm * 1e3, aperture_mm * 1e3
+    half_w, half_d = 0.5 * thickness_um, 0.5e3 * depth_mm
+    phi = math.radians(tilt_deg)
+    cos_p, sin_p = math.cos(phi), math.sin(phi)
+    v = (np.arange(n_aperture) + 0.5) / n_aperture * 2.0 - 1.0
+    w_ap = np.ones_like(v) if aperture == "square" else np.sqrt(1.0 - v * v)
+    w_ap = w_ap / w_ap.sum()
+    x_ap = 0.5 * D_um * v
+    sub = ((np.arange(n_sub) + 0.5) / n_sub - 0.5) * pixel_um
+    X = (np.asarray(x_um)[:, None] + sub[None, :]).ravel()  # (n_points,)
+    slope = (X[:, None] - x_ap[None, :]) / L_um  # dx/dz of each ray, (n_points, n_ap)
+    # x(z) = X + (z - Delta) slope; in the sample frame u = (x - c) cos - z sin,
+    # w = (x - c) sin + z cos, both linear in z: u = u0 + u1 z, w = w0 + w1 z.
+    x0 = X[:, None] - delta_um * slope - centre_um
+    u0, u1 = x0 * cos_p, slope * cos_p - sin_p
+    w0, w1 = x0 * sin_p, slope * sin_p + cos_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ua, ub = (-half_w - u0) / u1, (half_w - u0) / u1
+        wa, wb = (-half_d - w0) / w1, (half_d - w0) / w1
+    z_in = np.maximum(np.minimum(ua, ub), np.minimum(wa, wb))
+    z_out = np.minimum(np.maximum(ua, ub), np.maximum(wa, wb))
+    length = np.maximum(z_out - z_in, 0.0) * np.sqrt(1.0 + slope * slope)
+    grid = np.linspace(0.0, length.max() * (1 + 1e-12) + 1e-9, 8001)
+    table = spectrum_average_transmission(lam, weight, mu_per_m, mu_per_m_per_A, grid)
+    per_point = np.interp(length, grid, table) @ w_ap
+    return per_point.reshape(len(x_um), n_sub).mean(axis=1)
+
+
+# --------------------------------------------------------------------------- derivatives
+
+
+def central_difference(f, x: float, h: float) -> float:
+    """(f(x + h) - f(x - h)) / 2h, with f a scalar function of a float."""
+    return (float(f(x + h)) - float(f(x - h))) / (2.0 * h)
+
+
+# --------------------------------------------------------------------------- model calls
+
+
+def _weighted(params, model, weights):
+    """sum_p w_p . T_p + v_p . T_att_p: a random linear functional touching every pixel."""
+    import jax.numpy as jnp
+
+    T, T_att = model(params)
+    value = sum(jnp.dot(w, t) for w, t in zip(weights[0], T))
+    value = value + sum(jnp.dot(w, t) for w, t in zip(weights[1], T_att))
+    return value, (T, T_att)
+
+
+def _make_jitted():
+    import equinox as eqx
+
+    value_and_grad = eqx.filter_jit(eqx.filter_value_and_grad(_weighted, has_aux=True))
+    value = eqx.filter_jit(lambda params, model, weights: _weighted(params, model, weights)[0])
+    return value_and_grad, value
+
+
+# Module-level, so that tests in different files that build models of the same shapes
+# share one compilation (compiling value-and-gradient takes ~10 s per model on 2 cores).
+weighted_value_and_grad, weighted_value = _make_jitted()
+
+
+def random_weights(scene, dtype, seed=0):
+    """Normal random weights (one array per profile) for T and for T_att."""
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(seed)
+    sizes = [len(p.x_um) for p in scene.profiles]
+    return ([jnp.asarray(rng.normal(size=n), dtype) for n in sizes],
+            [jnp.asarray(rng.normal(size=n), dtype) for n in sizes])
+
+
+def replace_params(params, **changes):
+    """A copy of ModelParams with fields replaced (values cast to the params' dtype)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    dtype = params.tilt_deg.dtype
+    names = list(changes)
+    return eqx.tree_at(lambda p: [getattr(p, n) for n in names], params,
+                       [jnp.asarray(changes[n], dtype) for n in names])
+
+
+# --------------------------------------------------------------------------- shared scenes
+
+
+def oxide_layer(name, thickness_um, sld, mu, mu_per_A=0.3) -> dict:
+    return {"name": name, "thickness_um": float(thickness_um), "sld_e6_per_A2": float(sld),
+            "mu_per_m": float(mu), "mu_per_m_per_A": float(mu_per_A)}
+
+
+STACK_LAYERS = [oxide_layer("ox2_left", 80.0, 3.518, 12.0), oxide_layer("ox1_left", 160.0, 3.304, 24.0),
+                al_layer(mu=1.39, mu_per_A=0.1),
+                oxide_layer("ox1_right", 160.0, 3.304, 24.0), oxide_layer("ox2_right", 80.0, 3.518, 12.0)]
+
+
+def stack_scene(folder: Path):
+    """Five independent layers (oxide 80 | 160 | Al 1000 | 160 | 80 µm), BOA white beam,
+    one profile at 34.4 mm (+-1300 µm), kernel windows sized for tilt 0.5°.
+
+    Shared by the hard-case and gradient tests: models built from it with
+    ``free=free_layer_parameters(scene)`` have the same compiled shapes, so
+    ``weighted_value_and_grad`` compiles once per precision for both files.
+    """
+    return write_scene(folder, STACK_LAYERS, name="stack.toml", tilt_deg=0.5,
+                       profiles=[("d34.4mm", 34.4, -1300.0, 1300.0)],
+                       spectrum={"file": str(BOA_SPECTRUM)})
+
+
+def free_layer_parameters(scene) -> list[str]:
+    """Every layer parameter as a ``vary`` name, so that no interface is pruned."""
+    return [f"layers.{layer.name}.{key}" for layer in scene.sample.layers
+            for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")]

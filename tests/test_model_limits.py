@@ -1,0 +1,300 @@
+"""Analytic limits of the forward model: Beer-Lambert, conservation, symmetry, invariances,
+and gradients against central differences.
+
+Models are built once per module and varied through their parameters where the physics
+allows (tilt, distance, mu, SLD are ModelParams fields), because each new model shape
+costs a few seconds of compilation. Kernel windows are sized from the scene's tilt, so
+scenes are written with the largest tilt a test evaluates.
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fwdfit
+from fwdfit import ReferenceLayer, trace_reference
+from helpers import (BOA_SPECTRUM, al_layer, boa_spectrum, central_difference, free_layer_parameters,
+                     oxide_layer, random_weights, replace_params, rms, spectrum_average_transmission,
+                     stack_scene, straight_ray_profile, weighted_value, weighted_value_and_grad,
+                     write_scene)
+
+BOA = dict(aperture="square", aperture_mm=40.0, aperture_distance_m=7.5)
+ICON = dict(aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5)
+WHITE = {"file": str(BOA_SPECTRUM)}
+LINE = {"wavelength_A": 4.6, "fwhm_rel": 0.15}
+PIXEL_UM = 2.4
+
+
+def _run(model, params):
+    T, T_att = eqx.filter_jit(model)(params)
+    return [np.asarray(t) for t in T], [np.asarray(t) for t in T_att]
+
+
+# --------------------------------------------------------------------------- no refraction
+
+# A strongly and wavelength-dependently attenuating block without refraction.
+MU0, MU1 = 60.0, 20.0  # 1/m, 1/m/Å: exp(-mu d) from 0.86 (0.8 Å) to 0.54 (10 Å)
+BL_PROFILES = [("d01.1mm", 1.1, -672.0, 672.0), ("d34.4mm", 34.4, -1200.0, 1200.0)]
+
+
+@pytest.fixture(scope="module")
+def no_sld(tmp_path_factory):
+    """(scene, {tilt_deg: (T list, T_att list)}) for an SLD = 0 block, BOA, tilts 0 and 0.5°."""
+    block = {"name": "B", "thickness_um": 1000.0, "sld_e6_per_A2": 0.0, "mu_per_m": MU0,
+             "mu_per_m_per_A": MU1}
+    scene = write_scene(tmp_path_factory.mktemp("nosld"), [block], profiles=BL_PROFILES,
+                        spectrum=WHITE, tilt_deg=0.5, **BOA)
+    model, params = fwdfit.build_model(scene), fwdfit.initial_params(scene)
+    return scene, {tilt: _run(model, replace_params(params, tilt_deg=tilt)) for tilt in (0.0, 0.5)}
+
+
+def _exact_straight(scene, profile, tilt_deg, **quadrature):
+    lam, weight = boa_spectrum()
+    return straight_ray_profile(profile.x_um, PIXEL_UM, thickness_um=1000.0, mu_per_m=MU0,
+                                mu_per_m_per_A=MU1, depth_mm=2.0, tilt_deg=tilt_deg, centre_um=0.0,
+                                distance_mm=profile.distance_mm, lam=lam, weight=weight, **BOA,
+                                **quadrature)
+
+
+def test_no_refraction_T_equals_T_att(no_sld):
+    """With every SLD zero no interface refracts: T and T_att are the same numbers."""
+    _, runs = no_sld
+    for T, T_att in runs.values():
+        for t, a in zip(T, T_att):
+            assert np.array_equal(t, a)
+            assert t.min() < 0.8  # the block is there
+
+
+def test_untilted_block_is_beer_lambert(no_sld):
+    """Untilted: T = spectrum average of exp(-mu(lambda) d) under the block, 1 far outside,
+    and at the edges the straight-ray profile blurred by the penumbra Delta * D / L and
+    integrated over pixels. The reference is computed by brute force in NumPy
+    (``helpers.straight_ray_profile``: every ray's path length through the block, 24
+    points per pixel x 600 over the aperture). Measured max differences 7.6e-5 (1.1 mm)
+    and 3.8e-5 (34.4 mm), 3.4e-5 of it the model's wavelength quadrature in the bulk."""
+    scene, runs = no_sld
+    T_all, _ = runs[0.0]
+    lam, weight = boa_spectrum()
+    inside = spectrum_average_transmission(lam, weight, MU0, MU1, 2000.0)[0]
+    for profile, T in zip(scene.profiles, T_all):
+        x = profile.x_um
+        penumbra = profile.distance_mm * 1e3 * 40.0 / 7500.0
+        bulk = np.abs(x) < 500.0 - penumbra - 10.0
+        outside = np.abs(x) > 500.0 + penumbra + 10.0
+        np.testing.assert_allclose(T[bulk], inside, rtol=0, atol=5e-5)
+        assert np.all(T[outside] == 1.0)
+        exact = _exact_straight(scene, profile, 0.0)
+        np.testing.assert_allclose(T, exact, rtol=0, atol=1.5e-4)
+
+
+def test_tilted_block_is_beer_lambert_along_tilted_paths(no_sld):
+    """Tilted by 0.5° (more than the 2.7 mrad half-divergence): across the 17 µm where rays
+    cross a side face, the transmission follows the partial path length through the
+    tilted block. Compared with the brute-force straight-ray profile: max difference
+    below 1.5e-3 and RMS below 2e-4 at the default accuracy (measured 1.04e-3 / 1.0e-4
+    at 1.1 mm, from the depth quadrature; see the convergence test)."""
+    scene, runs = no_sld
+    T_all, _ = runs[0.5]
+    for profile, T in zip(scene.profiles, T_all):
+        exact = _exact_straight(scene, profile, 0.5)
+        assert np.ptp(exact[(np.abs(profile.x_um) > 480) & (np.abs(profile.x_um) < 520)]) > 0.1
+        np.testing.assert_allclose(T, exact, rtol=0, atol=1.5e-3)
+        assert rms(T - exact) < 2e-4
+
+
+def test_tilted_beer_lambert_converges(tmp_path):
+    """At accuracy 1e-5 the tilted no-refraction profile at 1.1 mm matches the brute-force
+    straight-ray profile to 5e-5 (measured 2.9e-5; 1.0e-3 at the default 1e-3): the
+    default's error is quadrature, not physics."""
+    block = {"name": "B", "thickness_um": 1000.0, "sld_e6_per_A2": 0.0, "mu_per_m": MU0,
+             "mu_per_m_per_A": MU1}
+    scene = write_scene(tmp_path, [block], profiles=BL_PROFILES[:1], spectrum=WHITE,
+                        tilt_deg=0.5, **BOA)
+    (T,), _ = _run(fwdfit.build_model(scene, accuracy=1e-5), fwdfit.initial_params(scene))
+    exact = _exact_straight(scene, scene.profiles[0], 0.5, n_sub=48, n_aperture=1200)
+    np.testing.assert_allclose(T, exact, rtol=0, atol=5e-5)
+
+
+def test_straight_ray_reference_agrees_with_tracer(no_sld):
+    """The brute-force straight-ray profile used above agrees with the exact Monte Carlo
+    tracer (SLD 0, 4e5 rays, tilt 0.5°, 1.1 mm) within 4 sigma of the tracer's batch
+    error + 2e-4 in every pixel near the left edge, and so does the model (+ 1.5e-3)."""
+    scene, runs = no_sld
+    profile = scene.profiles[0]
+    near = (profile.x_um > -560) & (profile.x_um < -440)
+    x = profile.x_um[near]
+    lam, weight = boa_spectrum()
+    ref = trace_reference([ReferenceLayer(1000.0, 0.0, MU0, MU1)], depth_mm=2.0, tilt_deg=0.5,
+                          centre_um=0.0, distance_mm=profile.distance_mm, spectrum_lambda_A=lam,
+                          spectrum_weight=weight, pixel_edges_um=np.append(x - 1.2, x[-1] + 1.2),
+                          n_rays=400_000, seed=3, **BOA)
+    assert np.array_equal(ref.T, ref.T_att)
+    exact = _exact_straight(scene, profile, 0.5)[near]
+    model = runs[0.5][0][0][near]
+    assert np.all(np.abs(exact - ref.T) < 4 * ref.T_err + 2e-4)
+    assert np.all(np.abs(model - ref.T) < 4 * ref.T_err + 1.5e-3)
+    assert ref.T.min() < 0.8 and ref.T.max() == 1.0
+
+
+# --------------------------------------------------------------------------- conservation, symmetry
+
+OXIDE5 = [oxide_layer("o2", 80.0, 3.518, 12.0), oxide_layer("o1", 160.0, 3.304, 24.0),
+          al_layer(mu=1.39, mu_per_A=0.774), {"name": "o1r", "same_as": "o1"},
+          {"name": "o2r", "same_as": "o2"}]
+WIDE = [("wide", 34.4, -1500.0, 1500.0)]  # holds every deflected ray up to 34.4 mm
+SETUPS = {
+    "boa_al": ([al_layer(mu=9.059, mu_per_A=0.774)], WHITE, BOA),
+    "icon_al": ([al_layer(mu=9.059, mu_per_A=0.774)], LINE, ICON),
+    "boa_oxide5": (OXIDE5, WHITE, BOA),
+}
+
+
+@pytest.fixture(scope="module")
+def wide_models(tmp_path_factory):
+    """{setup: (model, params)} on a +-1500 µm grid symmetric about the centre, windows for
+    0.5° and 34.4 mm (smaller distances and tilts are parameter values)."""
+    folder = tmp_path_factory.mktemp("wide")
+    out = {}
+    for name, (layers, spectrum, geometry) in SETUPS.items():
+        scene = write_scene(folder, layers, name=f"{name}.toml", profiles=WIDE, spectrum=spectrum,
+                            tilt_deg=0.5, **geometry)
+        out[name] = fwdfit.build_model(scene), fwdfit.initial_params(scene)
+    return out
+
+
+@pytest.mark.parametrize("setup", list(SETUPS))
+def test_no_absorption_conserves_intensity(wide_models, setup):
+    """mu = 0: refraction and reflection only move intensity, so sum (T - 1) * pixel = 0.
+
+    For distances 1.1, 8.5, 34.4 mm and tilts 0, 0.24, 0.5°: |sum| < 1e-6 µm while the
+    displaced intensity (half of sum |T - 1| * pixel) is 1.8 to 11 µm; measured |sum| below
+    3e-14 µm (the kernels are differences of cumulative masses, so every quadrature node
+    conserves exactly when its window holds all its rays). T_att is 1 everywhere."""
+    model, params = wide_models[setup]
+    zeros = np.zeros_like(np.asarray(params.mu_per_m))
+    for distance in (1.1, 8.5, 34.4):
+        for tilt in (0.0, 0.24, 0.5):
+            p = replace_params(params, mu_per_m=zeros, mu_per_m_per_A=zeros, tilt_deg=tilt,
+                               distance_mm=[distance])
+            (T,), (T_att,) = _run(model, p)
+            assert np.max(np.abs(T_att - 1.0)) < 1e-12
+            moved = 0.5 * np.sum(np.abs(T - 1.0)) * PIXEL_UM
+            assert moved > 1.0, (distance, tilt)
+            assert abs(np.sum(T - 1.0) * PIXEL_UM) < 1e-6, (distance, tilt)
+
+
+@pytest.mark.parametrize("setup", list(SETUPS))
+def test_untilted_symmetric_stack_is_symmetric(wide_models, setup):
+    """Untilted mirror-symmetric stack (Al block; five-layer oxide) on a grid symmetric about
+    the centre: T(x) = T(-x) and T_att(x) = T_att(-x) to 1e-9 (measured 3e-14), at 1.1, 8.5
+    and 34.4 mm."""
+    model, params = wide_models[setup]
+    for distance in (1.1, 8.5, 34.4):
+        (T,), (T_att,) = _run(model, replace_params(params, tilt_deg=0.0, distance_mm=[distance]))
+        assert np.max(np.abs(T - T[::-1])) < 1e-9
+        assert np.max(np.abs(T_att - T_att[::-1])) < 1e-9
+        assert T.max() > 1.01  # there are edge peaks to compare
+
+
+@pytest.mark.parametrize("setup", list(SETUPS))
+def test_tilt_sign_mirrors_the_profile(wide_models, setup):
+    """A symmetric stack tilted by +phi is the mirror image of the one tilted by -phi:
+    T(x; phi) = T(-x; -phi) to 1e-9, for phi = 0.24° and 0.5° at 1.1 and 34.4 mm. Checks that
+    both crossing directions of both faces see the tilt with the right sign; the tilted
+    profile itself is asymmetric by > 0.01."""
+    model, params = wide_models[setup]
+    for distance in (1.1, 34.4):
+        for tilt in (0.24, 0.5):
+            (T_plus,), _ = _run(model, replace_params(params, tilt_deg=tilt, distance_mm=[distance]))
+            (T_minus,), _ = _run(model, replace_params(params, tilt_deg=-tilt, distance_mm=[distance]))
+            assert np.max(np.abs(T_plus - T_minus[::-1])) < 1e-9
+            assert np.max(np.abs(T_plus - T_plus[::-1])) > 0.01
+
+
+# --------------------------------------------------------------------------- invariances
+
+
+@pytest.fixture(scope="module")
+def icon_al(wide_models):
+    model, params = wide_models["icon_al"]
+    return _run(model, replace_params(params, tilt_deg=0.24, distance_mm=[8.5]))
+
+
+def _icon_variant(tmp_path, layers, free=()):
+    scene = write_scene(tmp_path, layers, profiles=WIDE, spectrum=LINE, tilt_deg=0.5, **ICON)
+    params = replace_params(fwdfit.initial_params(scene), tilt_deg=0.24, distance_mm=[8.5])
+    return _run(fwdfit.build_model(scene, free=free), params)
+
+
+def test_split_block_and_empty_layer_change_nothing(tmp_path, icon_al):
+    """Al 1000 µm == Al 400 µm | oxide 0 µm | Al 600 µm (tilted 0.24°, 8.5 mm, ICON 4.6 Å):
+    an interface without contrast and a zero-thickness layer leave T and T_att unchanged
+    to 1e-10."""
+    layers = [al_layer("A1", 400.0, mu=9.059, mu_per_A=0.774), oxide_layer("ox", 0.0, 3.518, 12.0),
+              al_layer("A2", 600.0, mu=9.059, mu_per_A=0.774)]
+    (T,), (T_att,) = _icon_variant(tmp_path, layers)
+    (T_ref,), (T_att_ref,) = icon_al
+    np.testing.assert_allclose(T, T_ref, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(T_att, T_att_ref, rtol=0, atol=1e-10)
+
+
+def test_zero_contrast_kernel_changes_nothing(tmp_path, icon_al):
+    """oxide 0 µm | Al 400 | Al 600 with the first Al's SLD and mu free: the no-contrast
+    interface keeps its refraction kernel (evaluated at k = 0, no attenuation step), which
+    must add nothing: T and T_att equal the plain block's to 1e-10 (measured 1e-16)."""
+    layers = [oxide_layer("ox", 0.0, 3.518, 12.0), al_layer("A1", 400.0, mu=9.059, mu_per_A=0.774),
+              al_layer("A2", 600.0, mu=9.059, mu_per_A=0.774)]
+    (T,), (T_att,) = _icon_variant(tmp_path, layers, free=("layers.A1.sld_e6_per_A2",
+                                                           "layers.A1.mu_per_m"))
+    (T_ref,), (T_att_ref,) = icon_al
+    np.testing.assert_allclose(T, T_ref, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(T_att, T_att_ref, rtol=0, atol=1e-10)
+
+
+# --------------------------------------------------------------------------- gradients
+
+# Central-difference steps per field: small enough that no kink of the piecewise-smooth
+# profile falls inside (+-h), large enough for float64 rounding (a random functional of
+# 1083 pixels of T and T_att is ~10; roundoff ~1e-15 * 10 / h).
+STEPS = {"thickness_um": 1e-4, "sld_e6_per_A2": 1e-6, "mu_per_m": 1e-4, "mu_per_m_per_A": 1e-4,
+         "tilt_deg": 1e-6, "centre_um": 1e-4, "depth_mm": 1e-7, "distance_mm": 1e-6, "shift_um": 1e-4}
+GRADIENT_RTOL = 1e-4
+
+
+def test_gradients_match_central_differences(tmp_path):
+    """jax gradient of a random linear functional of (T, T_att) against central differences,
+    every component of every ModelParams field, float64.
+
+    The five-layer stack (BOA white beam, 34.4 mm) at tilt 0.3°, centre 7.3 µm, shift 2.1 µm
+    and mu_per_m_per_A != 0. The profile is piecewise smooth with dense kinks (the critical
+    angle of every wavelength node and depth node sweeps across pixel edges), so steps are
+    ~1e-7 relative; with 10x larger steps tilt and SLD differences straddle kinks and miss
+    by up to 2 %. Tolerance: |fd - grad| <= 1e-4 * max(|grad|, 1e-3 * max|grad of field|);
+    the largest relative error is printed (measured ~1e-7)."""
+    scene = stack_scene(tmp_path)
+    model = fwdfit.build_model(scene, free=free_layer_parameters(scene))
+    params = replace_params(fwdfit.initial_params(scene), tilt_deg=0.3, centre_um=7.3,
+                            shift_um=[2.1], mu_per_m_per_A=[0.5, 0.8, 0.774, 0.8, 0.5])
+    weights = random_weights(scene, jnp.float64, seed=1)
+    (_, _), grads = weighted_value_and_grad(params, model, weights)
+    worst = 0.0
+    for field, h in STEPS.items():
+        base = np.asarray(getattr(params, field))
+        analytic = np.atleast_1d(np.asarray(getattr(grads, field)))
+        scale = max(np.max(np.abs(analytic)), 1e-300)
+        for i in range(analytic.size):
+            def value(s, i=i):
+                shifted = base.copy().ravel()
+                shifted[i] += s
+                return weighted_value(replace_params(params, **{field: shifted.reshape(base.shape)}),
+                                      model, weights)
+
+            fd = central_difference(value, 0.0, h)
+            error = abs(fd - analytic[i]) / max(abs(analytic[i]), 1e-3 * scale)
+            worst = max(worst, error)
+            assert error <= GRADIENT_RTOL, (field, i, fd, analytic[i])
+    print(f"gradient check: largest relative error {worst:.1e}")
