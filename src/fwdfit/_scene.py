@@ -287,8 +287,9 @@ def _spectra(path: Path, table: Any) -> dict[str, Spectrum]:
         reader = _Reader(path, entry, where, {"file", "wavelength_A", "fwhm_rel"})
         try:
             if reader.has("file"):
-                columns = read_columns(path.parent / reader.string("file"), ["lambda_A", "weight"])
-                spectra[name] = TabulatedSpectrum(columns["lambda_A"], columns["weight"])
+                table = path.parent / reader.string("file")
+                columns = read_columns(table, ["lambda_A", "weight"])
+                spectra[name] = TabulatedSpectrum(columns["lambda_A"], columns["weight"], table)
             else:
                 spectra[name] = GaussianLine(reader.number("wavelength_A", positive=True),
                                              reader.number("fwhm_rel", minimum=0.0))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 
@@ -15,10 +16,14 @@ _FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 @dataclasses.dataclass(frozen=True)
 class TabulatedSpectrum:
-    """Spectral density at ``lambda_A`` (Å, increasing), linear between rows, zero outside."""
+    """Spectral density at ``lambda_A`` (Å, increasing), linear between rows, zero outside.
+
+    ``path``: the table's file, if it came from one (kept for writing scenes back).
+    """
 
     lambda_A: np.ndarray
     weight: np.ndarray
+    path: Path | None = None
 
     def __post_init__(self):
         lam, w = np.asarray(self.lambda_A, float), np.asarray(self.weight, float)

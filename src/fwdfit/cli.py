@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 from ._errors import FwdfitError
@@ -52,6 +53,27 @@ def _run_paganin(args) -> None:
               f"-> {out / (p.name + '.csv')}")
 
 
+def _run_fit(args) -> int:
+    from ._fit import fit
+    from ._fit_output import write_fit
+    from ._scene import load_scene
+
+    _enable_float64()
+    scene = load_scene(args.scene)
+    if args.starts < 1:
+        raise FwdfitError(f"--starts must be >= 1, got {args.starts}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the notes are printed with the table below
+        result = fit(scene, accuracy=args.accuracy, n_starts=args.starts, seed=args.seed,
+                     max_steps=args.max_steps, progress=not args.quiet)
+    write_fit(result, Path(args.out))
+    print(result.table())
+    print(f"compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s; wrote {args.out}")
+    for note in result.warnings:
+        print(f"warning: {note}", file=sys.stderr)
+    return 0 if result.converged else 2
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -77,6 +99,17 @@ def _parser() -> argparse.ArgumentParser:
                          help="tau at the spectrum's mean wavelength (default) or averaged "
                               "over the spectrum")
     paganin.set_defaults(handler=_run_paganin)
+    fit = commands.add_parser("fit", help="fit the [fit] parameters to every measured profile at once",
+                              description="Exit status 0: converged; 2: results written but the "
+                                          "solver did not converge; 1: bad input.")
+    fit.add_argument("scene", help="scene file (TOML) with measured profiles and a [fit] table")
+    fit.add_argument("--out", required=True, help="output folder")
+    fit.add_argument("--accuracy", type=float, default=None, help="model accuracy (RMS error in T)")
+    fit.add_argument("--starts", type=int, default=1, help="starting points run in parallel (default 1)")
+    fit.add_argument("--seed", type=int, default=0, help="seed for the random starting points")
+    fit.add_argument("--max-steps", type=int, default=200, help="solver steps per stage (default 200)")
+    fit.add_argument("--quiet", action="store_true", help="no progress output")
+    fit.set_defaults(handler=_run_fit)
     add_profile_parser(commands)
     return parser
 
@@ -84,12 +117,12 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        args.handler(args)
+        status = args.handler(args)
     except (FwdfitError, OSError) as error:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"fwdfit: error: {message}", file=sys.stderr)
         return 1
-    return 0
+    return status or 0
 
 
 if __name__ == "__main__":

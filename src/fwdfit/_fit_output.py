@@ -1,0 +1,154 @@
+"""Fit results to files: result.json, per-profile CSVs, PNG plots, and the fitted scene."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._fit import FitResult
+from ._scene import Scene
+from ._spectrum import GaussianLine
+from ._tables import write_columns
+
+
+def result_dict(result: FitResult) -> dict:
+    """Everything result.json holds: values, errors, correlations, chi-square, timings, versions."""
+    import equinox
+    import jax
+    import optimistix
+
+    from . import __version__
+
+    return {
+        "parameters": {name: {"value": float(v), "error": float(e)}
+                       for name, v, e in zip(result.names, result.values, result.errors)},
+        "correlation": {"names": list(result.names), "matrix": np.round(result.correlation, 6).tolist()},
+        "chi2": result.chi2,
+        "dof": result.dof,
+        "chi2_reduced": result.chi2_reduced,
+        "sigma_from_data": result.sigma_from_data,
+        "converged": result.converged,
+        "message": result.message,
+        "iterations": result.n_steps,
+        "compile_time_s": result.compile_time_s,
+        "wall_time_s": result.wall_time_s,
+        "warnings": list(result.warnings),
+        "versions": {"fwdfit": __version__, "jax": jax.__version__, "equinox": equinox.__version__,
+                     "optimistix": optimistix.__version__, "python": platform.python_version()},
+    }
+
+
+def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
+    """Data with fit and residuals (top), attenuation-only fit against corrected data (bottom)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(7, 8), sharex=True,
+                                              gridspec_kw={"height_ratios": [3, 1, 3]})
+    x = profile.x_um
+    top.plot(x, profile.T, ".", ms=2, color="0.4", label="measured T")
+    top.plot(x, profile.T_model, "-", lw=1, color="C3", label="fit T_model")
+    top.set_ylabel("transmission T")
+    top.legend(loc="lower center", fontsize=8)
+    top.set_title(profile.name)
+    middle.plot(x, (profile.T - profile.T_model) / profile.sigma, ".", ms=2, color="C0")
+    middle.axhline(0, color="k", lw=0.5)
+    middle.set_ylabel("residual / σ")
+    bottom.plot(x, profile.T_corrected, ".", ms=2, color="0.4", label="T_corrected (refraction removed)")
+    bottom.fill_between(x, profile.T_att - profile.T_att_err, profile.T_att + profile.T_att_err,
+                        color="C2", alpha=0.3, lw=0)
+    bottom.plot(x, profile.T_att, "-", lw=1, color="C2", label="T_att (fit, ±1σ)")
+    bottom.set_ylabel("transmission T")
+    bottom.set_xlabel("x (µm)")
+    bottom.legend(loc="lower center", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(float(value))
+
+
+def scene_toml(scene: Scene, relative_to: Path) -> str:
+    """A scene as TOML text (explicit material constants; file paths relative to ``relative_to``)."""
+    def rel(path: Path) -> str:
+        return os.path.relpath(Path(path).resolve(), relative_to.resolve())
+
+    lines = ["# written by fwdfit", "[sample]"]
+    s = scene.sample
+    lines += [f"depth_mm = {_toml_value(s.depth_mm)}", f"tilt_deg = {_toml_value(s.tilt_deg)}",
+              f"centre_um = {_toml_value(s.centre_um)}", f"drift_um_per_mm = {_toml_value(s.drift_um_per_mm)}"]
+    for layer in s.layers:
+        lines += ["", "[[sample.layers]]", f"name = {_toml_value(layer.name)}"]
+        if layer.same_as:
+            lines.append(f"same_as = {_toml_value(layer.same_as)}")
+            continue
+        for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
+            lines.append(f"{key} = {_toml_value(getattr(layer, key))}")
+    for name, inst in scene.instruments.items():
+        lines += ["", "[instrument]" if name == "" else f"[instruments.{json.dumps(name)}]"]
+        for key in ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel"):
+            lines.append(f"{key} = {_toml_value(getattr(inst, key))}")
+    for name, spectrum in scene.spectra.items():
+        lines += ["", f"[spectra.{json.dumps(name)}]"]
+        if isinstance(spectrum, GaussianLine):
+            lines += [f"wavelength_A = {_toml_value(spectrum.wavelength_A)}",
+                      f"fwhm_rel = {_toml_value(spectrum.fwhm_rel)}"]
+        else:
+            lines.append(f"file = {_toml_value(rel(spectrum.path))}")
+    for p in scene.profiles:
+        lines += ["", "[[profiles]]", f"name = {_toml_value(p.name)}",
+                  f"distance_mm = {_toml_value(p.distance_mm)}", f"spectrum = {_toml_value(p.spectrum)}"]
+        if p.instrument:
+            lines.append(f"instrument = {_toml_value(p.instrument)}")
+        if p.file is not None:
+            lines.append(f"file = {_toml_value(rel(p.file))}")
+        else:
+            pixel = scene.instruments[p.instrument].pixel_um
+            lines += [f"x_min_um = {_toml_value(p.x_um[0] - 0.5 * pixel)}",
+                      f"x_max_um = {_toml_value(p.x_um[-1] + 0.5 * pixel)}"]
+        lines += [f"shift_um = {_toml_value(p.shift_um)}", f"norm = {_toml_value(p.norm)}",
+                  f"background = {_toml_value(p.background)}"]
+    if scene.fit.vary:
+        lines += ["", "[fit]", f"vary = {_toml_value(list(scene.fit.vary))}"]
+        for name, (low, high) in scene.fit.bounds.items():
+            lines.append(f"bounds.{json.dumps(name)} = [{_toml_value(low)}, {_toml_value(high)}]")
+    if not math.isclose(scene.accuracy, 1e-3):
+        lines += ["", "[model]", f"accuracy = {_toml_value(scene.accuracy)}"]
+    return "\n".join(lines) + "\n"
+
+
+def write_fit(result: FitResult, out_dir: Path) -> None:
+    """Write result.json, <profile>.csv, <profile>.png and fitted_scene.toml into out_dir.
+
+    Everything is written into a temporary folder first and moved into place, so an
+    error leaves ``out_dir`` without partial results.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out_dir) as staging:
+        staging = Path(staging)
+        (staging / "result.json").write_text(json.dumps(result_dict(result), indent=2) + "\n")
+        for p in result.profiles:
+            write_columns(staging / f"{p.name}.csv", {
+                "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
+                "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
+            plot_profile(staging / f"{p.name}.png", p)
+        (staging / "fitted_scene.toml").write_text(scene_toml(result.scene, out_dir))
+        for item in staging.iterdir():
+            os.replace(item, out_dir / item.name)
