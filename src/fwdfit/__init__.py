@@ -5,6 +5,11 @@ The flow: scene file -> ``load_scene`` -> ``build_model`` + ``initial_params`` -
 """
 
 from ._errors import FwdfitError as FwdfitError
+from ._fit import FitResult as FitResult
+from ._fit import FittedProfile as FittedProfile
+from ._fit import fit as fit
+from ._fit_output import scene_toml as scene_toml
+from ._fit_output import write_fit as write_fit
 from ._materials import MaterialConstants as MaterialConstants
 from ._materials import constants_from_formula as constants_from_formula
 from ._model import ForwardModel as ForwardModel
