@@ -23,8 +23,8 @@ BOA_SPECTRUM = MCSTAS / "spectrum_boa.csv"
 
 def read_table(path: Path) -> dict[str, np.ndarray]:
     """A CSV table with a header row, as a dict of float columns."""
-    path = Path(path)
-    header = path.open().readline().strip().split(",")
+    with open(path, encoding="utf-8") as stream:
+        header = stream.readline().strip().split(",")
     rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     return {name.strip(): rows[:, i] for i, name in enumerate(header)}
 

@@ -42,7 +42,7 @@ FIELDS = ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "tilt_d
 FLOAT32_TOLERANCE = 1e-3  # max |T32 - T64|; measured up to 2.7e-4 (critical case)
 
 
-AL = (2.078, 1.39, 0.1)  # sld, mu, mu_per_A of the stack's Al layer
+AL = (2.078, 1.39, 0.1)  # sld, mu, mu_per_A of the Al layers (stack and narrow)
 
 # Narrow kernel: 1 mm square aperture at 7.5 m, 4 Å, Al.
 NARROW_L_M, NARROW_D_MM, NARROW_LAMBDA_A = 7.5, 1.0, 4.0
@@ -250,3 +250,16 @@ def test_zero_thickness_layer_material_does_not_matter(results):
     print(f"zero-thickness layer, oxide vs Al: max|dT| = {np.max(np.abs(T_oxide - T_al)):.2e}, "
           f"max|dT_att| = {np.max(np.abs(T_att_oxide - T_att_al)):.2e}")
     np.testing.assert_allclose(T_oxide, T_al, rtol=0, atol=1e-6)
+
+
+def test_float32_fixture_runs_in_single_precision(float32, scenes, results):
+    """Inside the ``float32`` fixture, scene values, the model and its output are float32,
+    and the result is the float32 case computed above (same compiled function)."""
+    scene = scenes["narrow"]
+    params = fwdfit.initial_params(scene)
+    assert params.tilt_deg.dtype == jnp.float32
+    model = fwdfit.build_model(scene, free=free_layer_parameters(scene))
+    (_, (T, _)), grads = weighted_value_and_grad(_narrow_case(params, "untilted"), model,
+                                                 random_weights(scene, jnp.float32))
+    assert T[0].dtype == jnp.float32 and grads.tilt_deg.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(T[0], float), results("narrow", "untilted", "float32")[0])

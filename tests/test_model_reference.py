@@ -5,7 +5,7 @@ Each case is a scene in ``tests/data`` that restates the reference run (see
 and must match, per profile:
 
 - the transmission T and the attenuation-only T_att to an RMS difference of 0.002
-  (the references' own noise is 0.0003-0.0006 RMS; measured model differences are
+  (the references' own noise is 0.00004-0.0006 RMS; measured model differences are
   0.0001-0.0007 in T and below 0.0004 in T_att, see benchmarks/reference_table.md);
 - the gain-peak height and the loss-dip depth at each edge to 5 % (definitions in
   ``helpers.edge_heights``: extrema after a running mean over an eighth of the

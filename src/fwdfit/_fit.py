@@ -203,8 +203,8 @@ def _starts(free, n_starts: int, seed: int) -> np.ndarray:
 
 
 def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
-        n_starts: int = 1, seed: int = 0, max_steps: int = 200, rtol: float = 1e-7,
-        atol: float = 1e-7, progress: bool = False) -> FitResult:
+        n_starts: int = 1, seed: int = 0, max_steps: int = 200, rtol: float = 1e-5,
+        atol: float = 1e-5, progress: bool = False) -> FitResult:
     """Fit the free parameters of a scene to all of its measured profiles at once.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target

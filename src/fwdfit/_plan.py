@@ -24,6 +24,7 @@ _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
+_FREE_TILT_ROOM_DEG = 0.5  # a free tilt may move this far and its kernels still fit their windows
 
 
 def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float) -> tuple[int, int]:
@@ -91,10 +92,14 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
     return tuple(faces)
 
 
-def _window_um(scene: Scene, instrument, spectrum, distance_mm: float, margin: float) -> float:
-    """Half-width (µm) around an interface's projection that its kernel can reach."""
+def _window_um(scene: Scene, instrument, spectrum, distance_mm: float, margin: float,
+               free_tilt_deg: float) -> float:
+    """Half-width (µm) around an interface's projection that its kernel can reach.
+
+    free_tilt_deg: how far a free tilt may move from the scene's value.
+    """
     to_sample_um = instrument.aperture_distance_m * 1e6 - distance_mm * 1e3
-    tilt = abs(math.radians(scene.sample.tilt_deg))
+    tilt = abs(math.radians(scene.sample.tilt_deg)) + math.radians(free_tilt_deg)
     steepest = 0.5 * instrument.aperture_mm * 1e3 / to_sample_um + tilt
     slds = [0.0] + [l.sld_e6_per_A2 for l in scene.sample.layers]
     lambda_max = spectrum.support_A[1]
@@ -134,7 +139,9 @@ def build_model(scene: Scene, accuracy: float | None = None,
         n_pad = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / bin_um)
         n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
         margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
-        window = math.ceil(_window_um(scene, instrument, spectrum, profile.distance_mm, margin) / bin_um) + 2
+        tilt_room = _FREE_TILT_ROOM_DEG if "sample.tilt_deg" in free else 0.0
+        window_um = _window_um(scene, instrument, spectrum, profile.distance_mm, margin, tilt_room)
+        window = math.ceil(window_um / bin_um) + 2
         window = min(_ladder(window), (n_edges - 1) // 2)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
         lam, weight = wavelength_quadrature(spectrum, n_lambda)

@@ -1,0 +1,338 @@
+"""Acceptance tests of ``fwdfit.fit`` and ``fwdfit fit``: real numbers on exact synthetic data.
+
+Synthetic measurements are made once per module by the exact reference
+(``fwdfit.trace_reference``: float64 Monte Carlo, exact Snell's law), never by the
+model that is fitted, plus 1 % Gaussian noise (T_err = 0.01):
+
+- the Al block (1000 µm x 2 mm, periodictable constants for Al at 2.70 g/cm3),
+  tilted by 0.24°, centred at x = 3 µm: BOA white beam at 1.1, 8.5 and 34.4 mm and
+  ICON lines at 2.7 and 4.6 Å (circular 40 mm aperture at 5.5 m, 1.1 mm);
+- the five-layer oxide sample of ``tests/data/raytrace/oxide5_boa`` (oxide 2 | oxide 1 |
+  Al | oxide 1 | oxide 2, 80/160/1000 µm, SLD 3.518/3.304/2.078, mu 12/24/1.39 /m,
+  same_as ties), BOA white beam at 1.1, 12.2 and 34.4 mm, tilt 0.
+
+Each fit starts ~20 % away from the truth in every free parameter. Pixel ranges are
+tight (they cover every pixel where |T - T_att| > 3e-4 in the reference, plus the
+flat open beam and sample on either side), which keeps the fits fast.
+
+The CLI tests use small scenes: bad input fails before anything is compiled, and
+the one successful ``fwdfit fit`` uses data made by ``fwdfit.simulate``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fwdfit
+from fwdfit.cli import main
+from helpers import BOA_SPECTRUM, gaussian_line_table, read_table, rms
+
+NOISE = 0.01  # added Gaussian noise, = T_err
+
+# --------------------------------------------------------------------------- samples
+
+AL = fwdfit.constants_from_formula("Al", 2.70)
+AL_TRUTH = {
+    "sample.tilt_deg": 0.24,
+    "sample.centre_um": 3.0,
+    "layers.Al.thickness_um": 1000.0,
+    "layers.Al.sld_e6_per_A2": AL.sld_e6_per_A2,
+    "layers.Al.mu_per_m": AL.mu_per_m,
+}
+# Start ~20 % away from the truth in every free parameter.
+AL_START = {
+    "sample.tilt_deg": 0.24 * 0.8 - 0.05,  # 0.142
+    "sample.centre_um": 0.0,
+    "layers.Al.thickness_um": 1200.0,
+    "layers.Al.sld_e6_per_A2": 0.8 * AL.sld_e6_per_A2,
+    "layers.Al.mu_per_m": 1.2 * AL.mu_per_m,
+}
+# (name, instrument, spectrum, distance_mm, x_min_um, x_max_um, rays)
+AL_PROFILES = [
+    ("boa_d01.1mm", "", "white", 1.1, -800.0, 800.0, 3_000_000),
+    ("boa_d08.5mm", "", "white", 8.5, -800.0, 800.0, 4_000_000),
+    ("boa_d34.4mm", "", "white", 34.4, -960.0, 1104.0, 8_000_000),
+    ("icon_l2.7A", "icon", "l27", 1.1, -800.0, 800.0, 3_000_000),
+    ("icon_l4.6A", "icon", "l46", 1.1, -800.0, 800.0, 3_000_000),
+]
+
+OXIDE_LAYERS = [  # (name, thickness_um, sld_e6_per_A2, mu_per_m); right side mirrors the left
+    ("oxide2_left", 80.0, 3.518, 12.0),
+    ("oxide1_left", 160.0, 3.304, 24.0),
+    ("Al", 1000.0, 2.078, 1.39),
+]
+OXIDE_TRUTH = {
+    "sample.tilt_deg": 0.0,
+    "sample.centre_um": 0.0,
+    **{f"layers.{name}.thickness_um": t for name, t, _, _ in OXIDE_LAYERS},
+    **{f"layers.{name}.sld_e6_per_A2": s for name, _, s, _ in OXIDE_LAYERS[:2]},
+    **{f"layers.{name}.mu_per_m": m for name, _, _, m in OXIDE_LAYERS},
+}
+OXIDE_START = {
+    "sample.tilt_deg": 0.05,  # truth 0: "20 % off" is nothing, so only the 0.05°
+    "sample.centre_um": -4.0,
+    "layers.oxide2_left.thickness_um": 96.0,
+    "layers.oxide1_left.thickness_um": 128.0,
+    "layers.Al.thickness_um": 1200.0,
+    "layers.oxide2_left.sld_e6_per_A2": 0.8 * 3.518,
+    "layers.oxide1_left.sld_e6_per_A2": 0.8 * 3.304,
+    "layers.oxide2_left.mu_per_m": 1.2 * 12.0,
+    "layers.oxide1_left.mu_per_m": 1.2 * 24.0,
+    "layers.Al.mu_per_m": 1.2 * 1.39,
+}
+OXIDE_PROFILES = [
+    ("d01.1mm", "", "white", 1.1, -950.4, 950.4, 3_000_000),
+    ("d12.2mm", "", "white", 12.2, -1065.6, 1065.6, 4_000_000),
+    ("d34.4mm", "", "white", 34.4, -1248.0, 1248.0, 8_000_000),
+]
+
+BOA = dict(aperture="square", aperture_mm=40.0, aperture_distance_m=7.5)
+ICON = dict(aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5)
+LINES = {"l27": 2.7, "l46": 4.6}
+FWHM_REL = 0.15
+PIXEL_UM = 2.4
+
+
+# --------------------------------------------------------------------------- synthetic data
+
+
+def _pixel_centres(x_min, x_max):
+    n = int(round((x_max - x_min) / PIXEL_UM))
+    return x_min + (np.arange(n) + 0.5) * PIXEL_UM
+
+
+def _tracer_spectrum(spectrum: str):
+    if spectrum == "white":
+        table = read_table(BOA_SPECTRUM)
+        return table["lambda_A"], table["weight"]
+    return gaussian_line_table(LINES[spectrum], FWHM_REL)
+
+
+def _trace(layers, tilt_deg, centre_um, profile, seed):
+    """Exact reference T and T_att (n,) of one profile."""
+    name, instrument, spectrum, distance_mm, x_min, x_max, rays = profile
+    x = _pixel_centres(x_min, x_max)
+    lam, weight = _tracer_spectrum(spectrum)
+    traced = fwdfit.trace_reference(
+        layers, depth_mm=2.0, tilt_deg=tilt_deg, centre_um=centre_um,
+        **(ICON if instrument == "icon" else BOA), distance_mm=distance_mm,
+        spectrum_lambda_A=lam, spectrum_weight=weight,
+        pixel_edges_um=np.append(x - 0.5 * PIXEL_UM, x[-1] + 0.5 * PIXEL_UM),
+        n_rays=rays, seed=seed)
+    assert np.all(np.isfinite(traced.T)) and traced.n_dropped == 0
+    return x, traced
+
+
+def _write_profiles(folder: Path, profiles, layers, tilt_deg, centre_um, seed):
+    """Trace, add noise, write <name>.csv (x_um,T,T_err); returns {name: (x, T_true, T_att_true, mc_err)}."""
+    rng = np.random.default_rng(seed)
+    truth = {}
+    for i, profile in enumerate(profiles):
+        x, traced = _trace(layers, tilt_deg, centre_um, profile, seed=seed + i)
+        T = traced.T + rng.normal(0.0, NOISE, x.shape)
+        np.savetxt(folder / f"{profile[0]}.csv", np.column_stack([x, T, np.full_like(T, NOISE)]),
+                   delimiter=",", fmt="%.9g", header="x_um,T,T_err", comments="")
+        truth[profile[0]] = (x, traced.T, traced.T_att, traced.T_err)
+    return truth
+
+
+def _instrument_toml(table: str, inst: dict) -> str:
+    return (f"[{table}]\naperture = \"{inst['aperture']}\"\naperture_mm = {inst['aperture_mm']}\n"
+            f"aperture_distance_m = {inst['aperture_distance_m']}\npixel_um = {PIXEL_UM}\n"
+            "psf_fwhm_um = 0.0\nfresnel = false\n")
+
+
+def _profiles_toml(profiles) -> str:
+    out = []
+    for name, instrument, spectrum, distance_mm, *_ in profiles:
+        out += ["[[profiles]]", f'name = "{name}"', f"distance_mm = {distance_mm}",
+                f'spectrum = "{spectrum}"', f'file = "{name}.csv"']
+        if instrument:
+            out.append(f'instrument = "{instrument}"')
+        out.append("")
+    return "\n".join(out)
+
+
+def _vary_toml(start: dict) -> str:
+    return "[fit]\nvary = [" + ", ".join(f'"{k}"' for k in start) + "]\n"
+
+
+def _spectra_toml() -> str:
+    text = f'[spectra.white]\nfile = "{BOA_SPECTRUM}"\n'
+    for name, wavelength in LINES.items():
+        text += f"\n[spectra.{name}]\nwavelength_A = {wavelength}\nfwhm_rel = {FWHM_REL}\n"
+    return text
+
+
+def al_scene_text(start: dict) -> str:
+    return "\n".join([
+        f"[sample]\ndepth_mm = 2.0\ntilt_deg = {start['sample.tilt_deg']!r}\n"
+        f"centre_um = {start['sample.centre_um']!r}\n",
+        f'[[sample.layers]]\nname = "Al"\nthickness_um = {start["layers.Al.thickness_um"]!r}\n'
+        f"sld_e6_per_A2 = {start['layers.Al.sld_e6_per_A2']!r}\n"
+        f"mu_per_m = {start['layers.Al.mu_per_m']!r}\nmu_per_m_per_A = {AL.mu_per_m_per_A!r}\n",
+        _instrument_toml("instrument", BOA), _instrument_toml("instruments.icon", ICON),
+        _spectra_toml(), _profiles_toml(AL_PROFILES), _vary_toml(start)])
+
+
+def oxide_scene_text(start: dict) -> str:
+    layers = ""
+    for name, _, _, _ in OXIDE_LAYERS:
+        layers += (f'[[sample.layers]]\nname = "{name}"\n'
+                   f"thickness_um = {start[f'layers.{name}.thickness_um']!r}\n"
+                   f"sld_e6_per_A2 = {start.get(f'layers.{name}.sld_e6_per_A2', OXIDE_TRUTH.get(f'layers.{name}.sld_e6_per_A2', 2.078))!r}\n"
+                   f"mu_per_m = {start[f'layers.{name}.mu_per_m']!r}\n\n")
+    layers += ('[[sample.layers]]\nname = "oxide1_right"\nsame_as = "oxide1_left"\n\n'
+               '[[sample.layers]]\nname = "oxide2_right"\nsame_as = "oxide2_left"\n')
+    return "\n".join([
+        f"[sample]\ndepth_mm = 2.0\ntilt_deg = {start['sample.tilt_deg']!r}\n"
+        f"centre_um = {start['sample.centre_um']!r}\n", layers,
+        _instrument_toml("instrument", BOA), _spectra_toml(), _profiles_toml(OXIDE_PROFILES),
+        _vary_toml(start)])
+
+
+def al_reference_layers():
+    return [fwdfit.ReferenceLayer(1000.0, AL.sld_e6_per_A2, AL.mu_per_m, AL.mu_per_m_per_A)]
+
+
+def oxide_reference_layers():
+    left = [fwdfit.ReferenceLayer(t, s, m) for _, t, s, m in OXIDE_LAYERS]
+    return left + left[-2::-1]
+
+
+def make_al_case(folder: Path):
+    """Scene file (starting values) and per-profile truth of the Al block."""
+    folder.mkdir(parents=True, exist_ok=True)
+    truth = _write_profiles(folder, AL_PROFILES, al_reference_layers(), 0.24, 3.0, seed=101)
+    (folder / "scene.toml").write_text(al_scene_text(AL_START))
+    return folder / "scene.toml", truth
+
+
+def make_oxide_case(folder: Path):
+    folder.mkdir(parents=True, exist_ok=True)
+    truth = _write_profiles(folder, OXIDE_PROFILES, oxide_reference_layers(), 0.0, 0.0, seed=202)
+    (folder / "scene.toml").write_text(oxide_scene_text(OXIDE_START))
+    return folder / "scene.toml", truth
+
+
+# --------------------------------------------------------------------------- small scenes for the CLI
+
+SMALL_TRUTH = {"sample.centre_um": 2.0, "layers.Al.thickness_um": 1000.0, "layers.Al.sld_e6_per_A2": 2.078}
+SMALL_START = {"sample.centre_um": -3.0, "layers.Al.thickness_um": 1050.0, "layers.Al.sld_e6_per_A2": 1.8}
+
+
+def small_scene_text(values=None, *, profile="file = \"line.csv\"", fit=None) -> str:
+    """One Al block, one ICON 4.6 Å line at 1.1 mm over ±600 µm, [fit] varying three values."""
+    v = {**SMALL_START, **(values or {})}
+    fit = fit if fit is not None else (
+        "[fit]\nvary = [" + ", ".join(f'"{k}"' for k in v) + "]\n"
+        'bounds."layers.Al.thickness_um" = [900.0, 1100.0]\n')
+    return (f"[sample]\ndepth_mm = 2.0\ntilt_deg = 0.0\ncentre_um = {v['sample.centre_um']!r}\n\n"
+            f'[[sample.layers]]\nname = "Al"\nthickness_um = {v["layers.Al.thickness_um"]!r}\n'
+            f"sld_e6_per_A2 = {v['layers.Al.sld_e6_per_A2']!r}\nmu_per_m = 9.06\n"
+            "mu_per_m_per_A = 0.774\n\n"
+            + _instrument_toml("instrument", ICON)
+            + "\n[spectra.l46]\nwavelength_A = 4.6\nfwhm_rel = 0.15\n\n"
+            + f'[[profiles]]\nname = "line"\ndistance_mm = 1.1\nspectrum = "l46"\n{profile}\n\n'
+            + fit)
+
+
+def _small_table(folder: Path) -> np.ndarray:
+    """(x_um, T, T_err) rows of the small scene's profile: the model at the truth + 1 % noise."""
+    truth = folder / "truth.toml"
+    truth.write_text(small_scene_text(SMALL_TRUTH, profile="x_min_um = -600.0\nx_max_um = 600.0", fit=""))
+    simulated = fwdfit.simulate(truth)[0]
+    T = simulated.T + np.random.default_rng(7).normal(0.0, NOISE, simulated.T.shape)
+    return np.column_stack([simulated.x_um, T, np.full_like(T, NOISE)])
+
+
+def _write_csv(path: Path, header: str, rows) -> None:
+    np.savetxt(path, np.atleast_2d(rows), delimiter=",", fmt="%.9g", header=header, comments="")
+
+
+@pytest.fixture(scope="module")
+def small_case(tmp_path_factory):
+    """A measured small scene: folder with scene.toml and line.csv; and the rows of line.csv."""
+    folder = tmp_path_factory.mktemp("small")
+    rows = _small_table(folder)
+    _write_csv(folder / "line.csv", "x_um,T,T_err", rows)
+    (folder / "scene.toml").write_text(small_scene_text())
+    return folder, rows
+
+
+def _bad_inputs(rows):
+    """name: (scene text, {csv name: (header, rows)}, words the error line must contain)."""
+    ok = small_scene_text()
+    nan = rows.copy()
+    nan[10, 1] = np.nan
+    zero_err = rows.copy()
+    zero_err[5, 2] = 0.0
+    return {
+        "unknown_vary_name": (small_scene_text(fit='[fit]\nvary = ["layers.Al.thicknes_um"]\n'), {},
+                              ["fit.vary", "layers.Al.thicknes_um"]),
+        "unknown_layer_in_vary": (small_scene_text(fit='[fit]\nvary = ["layers.Cu.thickness_um"]\n'), {},
+                                  ["fit.vary", "layers.Cu.thickness_um"]),
+        "inverted_bounds": (small_scene_text(fit='[fit]\nvary = ["layers.Al.thickness_um"]\n'
+                                             'bounds."layers.Al.thickness_um" = [1100.0, 900.0]\n'), {},
+                            ["fit.bounds", "layers.Al.thickness_um"]),
+        "start_outside_bounds": (small_scene_text(fit='[fit]\nvary = ["layers.Al.thickness_um"]\n'
+                                                  'bounds."layers.Al.thickness_um" = [800.0, 900.0]\n'), {},
+                                 ["fit.bounds", "layers.Al.thickness_um"]),
+        "bounds_not_varied": (small_scene_text(fit='[fit]\nvary = ["sample.centre_um"]\n'
+                                               'bounds."sample.tilt_deg" = [-1.0, 1.0]\n'), {},
+                              ["fit.bounds", "sample.tilt_deg"]),
+        "empty_vary": (small_scene_text(fit="[fit]\nvary = []\n"), {}, ["fit.vary"]),
+        "missing_column": (ok, {"line.csv": ("x_um,T_err", rows[:, [0, 2]])}, ["line.csv", "T"]),
+        "nan_value": (ok, {"line.csv": ("x_um,T,T_err", nan)}, ["line.csv", "NaN"]),
+        "single_row": (ok, {"line.csv": ("x_um,T,T_err", rows[:1])}, ["line.csv"]),
+        "zero_T_err": (ok, {"line.csv": ("x_um,T,T_err", zero_err)}, ["T_err"]),
+        "negative_T_err": (ok, {"line.csv": ("x_um,T,T_err", rows * [1, 1, -1])}, ["T_err"]),
+        "missing_profile_file": (small_scene_text(profile='file = "nowhere.csv"'), {}, ["nowhere.csv"]),
+        "no_measured_profile": (small_scene_text(profile="x_min_um = -600.0\nx_max_um = 600.0"), {},
+                                ["line", "no measured data"]),
+        "no_profiles_at_all": (small_scene_text(profile="").split("[[profiles]]")[0]
+                               + '[fit]\nvary = ["sample.centre_um"]\n', {}, ["profiles"]),
+    }
+
+
+BAD_CASES = ["unknown_vary_name", "unknown_layer_in_vary", "inverted_bounds", "start_outside_bounds",
+             "bounds_not_varied", "empty_vary", "missing_column", "nan_value", "single_row",
+             "zero_T_err", "negative_T_err", "missing_profile_file", "no_measured_profile",
+             "no_profiles_at_all"]
+
+
+@pytest.mark.parametrize("case", BAD_CASES)
+def test_fit_bad_input_is_one_line_error(small_case, tmp_path, capsys, case):
+    """``fwdfit fit`` on bad input: exit 1, exactly one plain line on stderr naming what is
+    wrong, no traceback, nothing written to --out. All of these fail before any compile."""
+    _, rows = small_case
+    text, tables, words = _bad_inputs(rows)[case]
+    scene = tmp_path / "scene.toml"
+    scene.write_text(text)
+    _write_csv(tmp_path / "line.csv", "x_um,T,T_err", rows)
+    for name, (header, table) in tables.items():
+        _write_csv(tmp_path / name, header, table)
+    out = tmp_path / "out"
+    assert main(["fit", str(scene), "--out", str(out), "--quiet"]) == 1
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith("fwdfit: error: "), lines[0]
+    assert "Traceback" not in captured.err + captured.out
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+    assert not out.exists()
+
+
+def test_fit_rejects_bad_starts_option(small_case, tmp_path, capsys):
+    folder, _ = small_case
+    out = tmp_path / "out"
+    assert main(["fit", str(folder / "scene.toml"), "--out", str(out), "--quiet", "--starts", "0"]) == 1
+    assert len(capsys.readouterr().err.splitlines()) == 1
+    assert not out.exists()
