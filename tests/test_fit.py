@@ -21,9 +21,9 @@ the one successful ``fwdfit fit`` uses data made by ``fwdfit.simulate``.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +47,7 @@ AL_TRUTH = {
 }
 # Start ~20 % away from the truth in every free parameter.
 AL_START = {
-    "sample.tilt_deg": 0.24 * 0.8 - 0.05,  # 0.142
+    "sample.tilt_deg": 0.24 * 1.2 + 0.05,  # 0.338
     "sample.centre_um": 0.0,
     "layers.Al.thickness_um": 1200.0,
     "layers.Al.sld_e6_per_A2": 0.8 * AL.sld_e6_per_A2,
@@ -183,11 +183,12 @@ def al_scene_text(start: dict) -> str:
 
 def oxide_scene_text(start: dict) -> str:
     layers = ""
-    for name, _, _, _ in OXIDE_LAYERS:
+    for name, thickness, sld, mu in OXIDE_LAYERS:  # values not in ``start`` are fixed at the truth
+        key = f"layers.{name}."
         layers += (f'[[sample.layers]]\nname = "{name}"\n'
-                   f"thickness_um = {start[f'layers.{name}.thickness_um']!r}\n"
-                   f"sld_e6_per_A2 = {start.get(f'layers.{name}.sld_e6_per_A2', OXIDE_TRUTH.get(f'layers.{name}.sld_e6_per_A2', 2.078))!r}\n"
-                   f"mu_per_m = {start[f'layers.{name}.mu_per_m']!r}\n\n")
+                   f"thickness_um = {start.get(key + 'thickness_um', thickness)!r}\n"
+                   f"sld_e6_per_A2 = {start.get(key + 'sld_e6_per_A2', sld)!r}\n"
+                   f"mu_per_m = {start.get(key + 'mu_per_m', mu)!r}\n\n")
     layers += ('[[sample.layers]]\nname = "oxide1_right"\nsame_as = "oxide1_left"\n\n'
                '[[sample.layers]]\nname = "oxide2_right"\nsame_as = "oxide2_left"\n')
     return "\n".join([
@@ -336,3 +337,183 @@ def test_fit_rejects_bad_starts_option(small_case, tmp_path, capsys):
     assert main(["fit", str(folder / "scene.toml"), "--out", str(out), "--quiet", "--starts", "0"]) == 1
     assert len(capsys.readouterr().err.splitlines()) == 1
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- fits of exact synthetic data
+
+CASES = {
+    # sample: (make the case, truth, start)
+    "al": (make_al_case, AL_TRUTH, AL_START),
+    "oxide": (make_oxide_case, OXIDE_TRUTH, OXIDE_START),
+}
+
+
+def _fit_case(tmp_path_factory, sample):
+    make, truth, start = CASES[sample]
+    path, profiles = make(tmp_path_factory.mktemp(sample))
+    scene = fwdfit.load_scene(path)
+    for name, value in start.items():  # the scene holds the starting values, not the truth
+        assert _scene_value(scene, name) == pytest.approx(value)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = fwdfit.fit(scene)
+    print(f"\n{sample}: compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s\n"
+          + _report(result, truth, profiles))
+    return result, truth, profiles, [str(w.message) for w in caught]
+
+
+def _scene_value(scene, name):
+    parts = name.split(".")
+    if parts[0] == "sample":
+        return getattr(scene.sample, parts[1])
+    layer = next(layer for layer in scene.sample.layers if layer.name == parts[1])
+    return getattr(layer, parts[2])
+
+
+def _report(result, truth, profiles) -> str:
+    rows = [f"{'parameter':<36} {'fitted':>12} {'error':>9} {'truth':>12} {'pull':>6}"]
+    for name, value, error in zip(result.names, result.values, result.errors):
+        rows.append(f"{name:<36} {value:12.5f} {error:9.5f} {truth[name]:12.5f} "
+                    f"{(value - truth[name]) / error:+6.2f}")
+    rows.append(f"chi2_reduced {result.chi2_reduced:.4f} (dof {result.dof}), steps {result.n_steps}, "
+                f"converged {result.converged}")
+    for p in result.profiles:
+        rows.append(f"{p.name}: RMS(T_att - T_att_true) = {rms(p.T_att - profiles[p.name][2]):.2e}")
+    return "\n".join(rows)
+
+
+@pytest.fixture(scope="module")
+def al_fit(tmp_path_factory):
+    return _fit_case(tmp_path_factory, "al")
+
+
+@pytest.fixture(scope="module")
+def oxide_fit(tmp_path_factory):
+    return _fit_case(tmp_path_factory, "oxide")
+
+
+SAMPLES = ["al", pytest.param("oxide", marks=pytest.mark.slow)]
+
+
+@pytest.fixture(params=SAMPLES)
+def fitted(request):
+    """(result, truth, profiles, warnings) of one sample's fit, shared by the tests below."""
+    return request.getfixturevalue(f"{request.param}_fit")
+
+
+def test_fit_converges_without_warnings(fitted):
+    result, truth, _, caught = fitted
+    assert result.converged, result.message
+    assert result.warnings == () and caught == []
+    assert set(result.names) == set(truth)
+    assert result.dof == sum(len(p.x_um) for p in result.profiles) - len(result.names)
+
+
+def test_fit_recovers_geometry(fitted):
+    """Every thickness within 2 µm, the tilt within 0.02°, the centre within 1 µm."""
+    result, truth, _, _ = fitted
+    for name in result.names:
+        value, _ = result[name]
+        if name.endswith("thickness_um"):
+            assert abs(value - truth[name]) < 2.0, (name, value)
+        elif name == "sample.tilt_deg":
+            assert abs(value - truth[name]) < 0.02, value
+        elif name == "sample.centre_um":
+            assert abs(value - truth[name]) < 1.0, value
+
+
+def test_fit_recovers_sld(fitted):
+    """Every fitted SLD within 5 % of the truth."""
+    result, truth, _, _ = fitted
+    slds = [n for n in result.names if n.endswith("sld_e6_per_A2")]
+    assert slds
+    for name in slds:
+        assert result[name][0] == pytest.approx(truth[name], rel=0.05), name
+
+
+def test_fit_chi2_reduced(fitted):
+    """Data with 1 % noise and T_err = 0.01 fitted by a model accurate to ~1e-3: chi2_red ~ 1."""
+    result, _, _, _ = fitted
+    assert 0.8 < result.chi2_reduced < 1.3
+
+
+def test_fit_attenuation_only_profile(fitted):
+    """The fitted T_att matches the exact tracer's attenuation-only profile (RMS < 0.003), and
+    T_corrected = T - (T_model - T_att)."""
+    result, _, profiles, _ = fitted
+    for p in result.profiles:
+        x, _, T_att_true, _ = profiles[p.name]
+        np.testing.assert_array_equal(p.x_um, x)
+        assert rms(p.T_att - T_att_true) < 0.003, p.name
+        np.testing.assert_allclose(p.T_corrected, p.T - (p.T_model - p.T_att), atol=1e-12)
+        assert np.all(np.isfinite(p.T_att_err)) and np.all(p.T_att_err >= 0)
+
+
+def test_fit_uncertainties_are_sensible(fitted):
+    """Errors are positive and finite, the truth lies within 3 sigma of every fitted value,
+    and the correlation matrix is a correlation matrix."""
+    result, truth, _, _ = fitted
+    assert np.all(np.isfinite(result.errors)) and np.all(result.errors > 0)
+    pulls = {n: (v - truth[n]) / e for n, v, e in zip(result.names, result.values, result.errors)}
+    assert all(abs(p) < 3.0 for p in pulls.values()), pulls
+    c = result.correlation
+    np.testing.assert_allclose(np.diag(c), 1.0, atol=1e-9)
+    np.testing.assert_allclose(c, c.T, atol=1e-12)
+    assert np.all(np.abs(c) <= 1.0 + 1e-9)
+
+
+def test_fitted_scene_holds_fitted_values(fitted):
+    result, _, _, _ = fitted
+    for name, value in zip(result.names, result.values):
+        assert _scene_value(result.scene, name) == pytest.approx(value, rel=1e-12, abs=1e-12)
+    if any(layer.same_as for layer in result.scene.sample.layers):  # ties keep both sides equal
+        layers = {layer.name: layer for layer in result.scene.sample.layers}
+        for layer in result.scene.sample.layers:
+            if layer.same_as:
+                twin = layers[layer.same_as]
+                assert (layer.thickness_um, layer.sld_e6_per_A2, layer.mu_per_m) == (
+                    twin.thickness_um, twin.sld_e6_per_A2, twin.mu_per_m)
+
+
+# --------------------------------------------------------------------------- fwdfit fit: output files
+
+
+def test_fit_cli_writes_results(small_case, tmp_path, capsys):
+    """``fwdfit fit`` on a small measured scene: exit 0; result.json with the SCENE.md keys;
+    <profile>.csv with x_um,T,T_model,T_att,T_corrected; <profile>.png; fitted_scene.toml,
+    which ``load_scene`` reads back with the fitted values (round trip)."""
+    folder, rows = small_case
+    out = tmp_path / "out"
+    assert main(["fit", str(folder / "scene.toml"), "--out", str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    assert sorted(p.name for p in out.iterdir()) == ["fitted_scene.toml", "line.csv", "line.png",
+                                                     "result.json"]
+
+    result = json.loads((out / "result.json").read_text())
+    assert set(result["parameters"]) == set(SMALL_TRUTH)
+    for name, entry in result["parameters"].items():
+        assert set(entry) >= {"value", "error"}
+        assert math.isfinite(entry["value"]) and entry["error"] > 0
+        # model-made data: only the noise moves the values
+        assert abs(entry["value"] - SMALL_TRUTH[name]) < 4 * entry["error"], (name, entry)
+    assert result["converged"] is True
+    assert 0.8 < result["chi2_reduced"] < 1.2
+    assert result["wall_time_s"] > 0
+
+    table = read_table(out / "line.csv")
+    header = (out / "line.csv").read_text().splitlines()[0].split(",")
+    assert header[:5] == ["x_um", "T", "T_model", "T_att", "T_corrected"]
+    np.testing.assert_allclose(table["x_um"], rows[:, 0], rtol=1e-9)
+    np.testing.assert_allclose(table["T"], rows[:, 1], rtol=1e-8)
+    np.testing.assert_allclose(table["T_corrected"], table["T"] - (table["T_model"] - table["T_att"]),
+                               atol=1e-8)
+    assert rms(table["T"] - table["T_model"]) < 1.2 * NOISE
+    assert (out / "line.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    fitted = fwdfit.load_scene(out / "fitted_scene.toml")
+    for name, entry in result["parameters"].items():
+        assert _scene_value(fitted, name) == pytest.approx(entry["value"], rel=1e-12)
+    assert fitted.fit.vary == tuple(SMALL_START)
+    assert fitted.fit.bounds == {"layers.Al.thickness_um": (900.0, 1100.0)}
+    np.testing.assert_allclose(fitted.profiles[0].T, rows[:, 1], rtol=1e-8)  # same data file

@@ -1,0 +1,308 @@
+"""Are the fit's 1-sigma errors honest? Coverage over repeated noise draws.
+
+The Al block (1000 µm x 2 mm, Al at 2.70 g/cm3, tilt 0.24°, centre 3 µm), measured
+at BOA 1.1 and 8.5 mm (white beam) and ICON 4.6 Å (1.1 mm), ±700 µm each. The data
+are the model itself at the truth (``fwdfit.simulate``) plus 1 % Gaussian noise with
+T_err = 0.01, so only noise, not model error, moves the fitted values. Every draw is
+fitted from the same start (~10 % away from the truth in every parameter) with the
+full coarse-to-fine schedule of ``fwdfit.fit``.
+
+For each parameter the script reports the fraction of draws whose truth lies within
+1 sigma (expected 68.3 %) and 2 sigma (95.4 %), the mean and the standard deviation
+of the pulls (value - truth) / error (expected 0 and 1), and the ratio of the
+empirical scatter of the values to the mean reported error (expected 1); and the
+fraction of pixels where the truth's T_att lies inside the reported T_att ± T_att_err.
+
+``fwdfit.fit`` compiles its solver anew on every call (tens of seconds), so the draws
+reuse ONE compiled solver built from the same internals as ``fit`` (``fwdfit._fit``):
+only the data change between draws. The first two draws are also fitted with the
+public ``fwdfit.fit``, which must give the same values; their compile times are
+recorded.
+
+    PYTHONPATH=src python3 benchmarks/fit_calibration.py [N_DRAWS] [TIME_LIMIT_S]
+
+Writes ``benchmarks/results/fit_calibration.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import platform
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
+
+import fwdfit  # noqa: E402
+from fwdfit import _fit  # noqa: E402
+from fwdfit._parameters import assembler, free_parameters  # noqa: E402
+from fwdfit._plan import build_model  # noqa: E402
+from fwdfit._scene import FitSpec  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SPECTRUM = ROOT / "tests" / "data" / "mcstas" / "spectrum_boa.csv"
+NOISE = 0.01
+AL = fwdfit.constants_from_formula("Al", 2.70)
+TRUTH = {
+    "sample.tilt_deg": 0.24,
+    "sample.centre_um": 3.0,
+    "layers.Al.thickness_um": 1000.0,
+    "layers.Al.sld_e6_per_A2": AL.sld_e6_per_A2,
+    "layers.Al.mu_per_m": AL.mu_per_m,
+}
+START = {
+    "sample.tilt_deg": 0.20,
+    "sample.centre_um": 0.0,
+    "layers.Al.thickness_um": 1100.0,
+    "layers.Al.sld_e6_per_A2": 0.9 * AL.sld_e6_per_A2,
+    "layers.Al.mu_per_m": 1.1 * AL.mu_per_m,
+}
+
+
+def scene_text(values: dict) -> str:
+    return f"""
+[sample]
+depth_mm = 2.0
+tilt_deg = {values['sample.tilt_deg']!r}
+centre_um = {values['sample.centre_um']!r}
+
+[[sample.layers]]
+name = "Al"
+thickness_um = {values['layers.Al.thickness_um']!r}
+sld_e6_per_A2 = {values['layers.Al.sld_e6_per_A2']!r}
+mu_per_m = {values['layers.Al.mu_per_m']!r}
+mu_per_m_per_A = {AL.mu_per_m_per_A!r}
+
+[instrument]
+aperture = "square"
+aperture_mm = 40.0
+aperture_distance_m = 7.5
+pixel_um = 2.4
+
+[instruments.icon]
+aperture = "circular"
+aperture_mm = 40.0
+aperture_distance_m = 5.5
+pixel_um = 2.4
+
+[spectra.white]
+file = "{SPECTRUM}"
+
+[spectra.l46]
+wavelength_A = 4.6
+fwhm_rel = 0.15
+
+[[profiles]]
+name = "boa_d01.1mm"
+distance_mm = 1.1
+spectrum = "white"
+x_min_um = -700.8
+x_max_um = 700.8
+
+[[profiles]]
+name = "boa_d08.5mm"
+distance_mm = 8.5
+spectrum = "white"
+x_min_um = -700.8
+x_max_um = 700.8
+
+[[profiles]]
+name = "icon_l4.6A"
+distance_mm = 1.1
+spectrum = "l46"
+instrument = "icon"
+x_min_um = -700.8
+x_max_um = 700.8
+
+[fit]
+vary = [{", ".join(f'"{k}"' for k in values)}]
+"""
+
+
+class CompiledFit:
+    """``fwdfit.fit``'s solver compiled once for a scene; ``__call__`` fits new data with it.
+
+    The same steps as ``fit`` (objective, Levenberg-Marquardt, coarse-to-fine schedule,
+    covariance from the exact Jacobian), with the data as the only thing that changes.
+    """
+
+    def __init__(self, scene, max_steps: int = 200, rtol: float = 1e-7, atol: float = 1e-7):
+        self.scene = scene
+        self.free = free_parameters(scene)
+        T, sigma, self.sigma_from_data = _fit._data(scene)
+        model = build_model(scene, None, free=[p.name for p in self.free])
+        self.pixel_um = min(scene.instruments[p.instrument].pixel_um for p in scene.profiles)
+        coarse_px = _fit._SMOOTHING_SCHEDULE_UM[0] / self.pixel_um
+        self.objective = _fit.Objective(model, assembler(scene, self.free), tuple(map(jnp.asarray, T)),
+                                        tuple(map(jnp.asarray, sigma)),
+                                        jnp.zeros(2 * math.ceil(3 * coarse_px) + 1))
+        solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        free = self.free
+        runner = eqx.filter_jit(jax.vmap(lambda o, u0: _fit._solve(o, u0, free, solver, max_steps),
+                                         in_axes=(None, 0)))
+        self.u0 = jnp.asarray([[float(p.to_unit(p.value)) for p in free]])
+        start = time.perf_counter()
+        self.compiled = runner.lower(self.objective, self.u0).compile()
+        self.compile_time_s = time.perf_counter() - start
+
+    def __call__(self, T_list):
+        scene = dataclasses.replace(self.scene, profiles=tuple(
+            dataclasses.replace(p, T=np.asarray(t)) for p, t in zip(self.scene.profiles, T_list)))
+        objective = eqx.tree_at(lambda o: o.T, self.objective, tuple(map(jnp.asarray, T_list)))
+        start_time = time.perf_counter()
+        starts, total_steps = self.u0, 0
+        for smoothing_um in _fit._SMOOTHING_SCHEDULE_UM:
+            values, chi2, success, steps = self.compiled(
+                objective.with_smoothing(smoothing_um / self.pixel_um), starts)
+            total_steps += int(np.asarray(steps)[0])
+            starts = jnp.stack([jnp.stack([p.to_unit(v[i]) for i, p in enumerate(self.free)])
+                                for v in values])
+        values, chi2, success = jax.block_until_ready((values, chi2, success))
+        wall = time.perf_counter() - start_time
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return _fit._result(scene, self.free, objective, np.asarray(values[0]), float(chi2[0]),
+                                bool(success[0]), total_steps, self.compile_time_s, wall,
+                                self.sigma_from_data)
+
+
+def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
+    t_begin = time.perf_counter()
+    folder = Path(tempfile.mkdtemp(prefix="fit_calibration_"))
+    (folder / "truth.toml").write_text(scene_text(TRUTH))
+    (folder / "start.toml").write_text(scene_text(START))
+    truth_profiles = fwdfit.simulate(folder / "truth.toml")
+    start_scene = fwdfit.load_scene(folder / "start.toml")
+    base = dataclasses.replace(start_scene, profiles=tuple(
+        dataclasses.replace(p, T=t.T.copy(), T_err=np.full_like(t.T, NOISE))
+        for p, t in zip(start_scene.profiles, truth_profiles)), fit=FitSpec(tuple(START), {}))
+    n_pixels = sum(len(p.x_um) for p in base.profiles)
+    print(f"{len(base.profiles)} profiles, {n_pixels} pixels, {len(START)} free parameters", flush=True)
+
+    def draw(seed):
+        rng = np.random.default_rng(seed)
+        return [t.T + rng.normal(0.0, NOISE, t.T.shape) for t in truth_profiles]
+
+    t = time.perf_counter()
+    compiled = CompiledFit(base)
+    names = [p.name for p in compiled.free]
+    truth = np.array([TRUTH[n] for n in names])
+    print(f"compiled once: {compiled.compile_time_s:.1f} s (setup {time.perf_counter() - t:.1f} s)", flush=True)
+
+    # The public fit() on the first two draws: same answer, and a fresh compile every call.
+    public = []
+    for seed in range(2):
+        scene = dataclasses.replace(base, profiles=tuple(
+            dataclasses.replace(p, T=T) for p, T in zip(base.profiles, draw(seed))))
+        t = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = fwdfit.fit(scene)
+        public.append({"seed": seed, "values": result.values.tolist(), "errors": result.errors.tolist(),
+                       "chi2": result.chi2, "compile_time_s": result.compile_time_s,
+                       "fit_time_s": result.wall_time_s, "call_time_s": time.perf_counter() - t})
+        print(f"public fit() seed {seed}: call {public[-1]['call_time_s']:.1f} s, compile "
+              f"{result.compile_time_s:.1f} s, solve {result.wall_time_s:.1f} s", flush=True)
+
+    draws = []
+    loop_start = time.perf_counter()
+    for seed in range(n_draws):
+        elapsed = time.perf_counter() - loop_start
+        if draws and elapsed + elapsed / len(draws) > time_limit_s:
+            print(f"time limit: stopping after {len(draws)} draws", flush=True)
+            break
+        data = draw(seed)
+        t = time.perf_counter()
+        result = compiled(data)
+        call_time = time.perf_counter() - t
+        pulls = (result.values - truth) / result.errors
+        att_inside = [float(np.mean(np.abs(p.T_att - tp.T_att) < p.T_att_err))
+                      for p, tp in zip(result.profiles, truth_profiles)]
+        draws.append({"seed": seed, "values": result.values.tolist(), "errors": result.errors.tolist(),
+                      "pulls": pulls.tolist(), "chi2": result.chi2, "chi2_reduced": result.chi2_reduced,
+                      "converged": result.converged, "steps": result.n_steps,
+                      "solve_time_s": result.wall_time_s, "call_time_s": call_time,
+                      "T_att_inside_1sigma": att_inside})
+        print(f"draw {seed:3d}: chi2_red {result.chi2_reduced:.4f} steps {result.n_steps:3d} "
+              f"{call_time:5.1f} s  pulls " + " ".join(f"{p:+5.2f}" for p in pulls), flush=True)
+
+    values = np.array([d["values"] for d in draws])
+    errors = np.array([d["errors"] for d in draws])
+    pulls = np.array([d["pulls"] for d in draws])
+    n = len(draws)
+    summary = {}
+    for i, name in enumerate(names):
+        inside1 = float(np.mean(np.abs(pulls[:, i]) < 1.0))
+        summary[name] = {
+            "truth": float(truth[i]),
+            "coverage_1sigma": inside1,
+            "coverage_1sigma_binomial_error": math.sqrt(0.683 * 0.317 / n),
+            "coverage_2sigma": float(np.mean(np.abs(pulls[:, i]) < 2.0)),
+            "mean_pull": float(pulls[:, i].mean()),
+            "std_pull": float(pulls[:, i].std(ddof=1)) if n > 1 else None,
+            "max_abs_pull": float(np.abs(pulls[:, i]).max()),
+            "mean_value": float(values[:, i].mean()),
+            "std_value": float(values[:, i].std(ddof=1)) if n > 1 else None,
+            "mean_error": float(errors[:, i].mean()),
+            "scatter_over_error": float(values[:, i].std(ddof=1) / errors[:, i].mean()) if n > 1 else None,
+        }
+    chi2 = np.array([d["chi2"] for d in draws])
+    # Public fit() and the reused solver agree on the same data?
+    agreement = [float(np.max(np.abs(np.array(p["values"]) - values[k]) / errors[k]))
+                 for k, p in enumerate(public) if k < n]
+    output = {
+        "description": "coverage of the fit's 1-sigma errors over noise draws; data = fwdfit.simulate "
+                       "at the truth + 1 % Gaussian noise (T_err = 0.01); Al block, BOA 1.1 and 8.5 mm, "
+                       "ICON 4.6 A at 1.1 mm, +-700 um; same start every draw",
+        "truth": TRUTH, "start": START, "n_draws": n, "n_pixels": n_pixels, "dof": n_pixels - len(names),
+        "summary": summary,
+        "all_parameters_within_1sigma": float(np.mean(np.all(np.abs(pulls) < 1.0, axis=1))),
+        "chi2_reduced_mean": float(chi2.mean() / (n_pixels - len(names))),
+        "chi2_reduced_std": float(chi2.std(ddof=1) / (n_pixels - len(names))) if n > 1 else None,
+        "chi2_reduced_expected_std": math.sqrt(2.0 / (n_pixels - len(names))),
+        "converged_fraction": float(np.mean([d["converged"] for d in draws])),
+        "T_att_inside_1sigma_mean": float(np.mean([d["T_att_inside_1sigma"] for d in draws])),
+        "timing": {
+            "compile_once_s": compiled.compile_time_s,
+            "mean_draw_s": float(np.mean([d["call_time_s"] for d in draws])),
+            "mean_solve_s": float(np.mean([d["solve_time_s"] for d in draws])),
+            "mean_steps": float(np.mean([d["steps"] for d in draws])),
+            "public_fit_calls": public,
+            "public_vs_reused_max_diff_in_sigma": agreement,
+            "total_s": time.perf_counter() - t_begin,
+        },
+        "draws": draws,
+        "versions": {"fwdfit": fwdfit.__version__, "jax": jax.__version__,
+                     "optimistix": optx.__version__, "python": platform.python_version()},
+        "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()},
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "fit_calibration.json").write_text(json.dumps(output, indent=1) + "\n")
+    print(f"\n{n} draws; coverage of the truth within 1 sigma (expect 0.683 +- "
+          f"{math.sqrt(0.683 * 0.317 / n):.3f}), 2 sigma (0.954), pull mean / std, scatter / error:")
+    for name, s in summary.items():
+        print(f"  {name:<28} {s['coverage_1sigma']:.3f}  {s['coverage_2sigma']:.3f}  "
+              f"{s['mean_pull']:+.2f} / {s['std_pull']:.2f}  {s['scatter_over_error']:.2f}")
+    print(f"chi2_reduced mean {output['chi2_reduced_mean']:.4f} (std {output['chi2_reduced_std']:.4f}, "
+          f"expected {output['chi2_reduced_expected_std']:.4f}); converged {output['converged_fraction']:.2f}; "
+          f"T_att truth inside its band in {output['T_att_inside_1sigma_mean']:.3f} of pixels")
+    print(f"wrote {RESULTS / 'fit_calibration.json'} ({output['timing']['total_s']:.0f} s)")
+    return output
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40,
+         float(sys.argv[2]) if len(sys.argv) > 2 else 900.0)
