@@ -443,7 +443,7 @@ def test_fit_attenuation_only_profile(fitted):
     result, _, profiles, _ = fitted
     for p in result.profiles:
         x, _, T_att_true, _ = profiles[p.name]
-        np.testing.assert_array_equal(p.x_um, x)
+        np.testing.assert_allclose(p.x_um, x, rtol=0, atol=1e-6)
         assert rms(p.T_att - T_att_true) < 0.003, p.name
         np.testing.assert_allclose(p.T_corrected, p.T - (p.T_model - p.T_att), atol=1e-12)
         assert np.all(np.isfinite(p.T_att_err)) and np.all(p.T_att_err >= 0)

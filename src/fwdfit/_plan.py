@@ -39,7 +39,7 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
     n_lambda = max(4, math.ceil(base_lambda * factor))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
-    n_z = max(2, math.ceil(factor * (3 + 3.5 * math.log(lever_ratio))))
+    n_z = max(2, math.ceil(factor * (3 + 2.5 * math.log(lever_ratio))))
     return n_lambda, n_z
 
 
