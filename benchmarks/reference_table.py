@@ -36,20 +36,9 @@ sys.path.insert(0, str(ROOT / "tests"))  # one definition of the metrics, shared
 
 import fwdfit  # noqa: E402
 from helpers import (  # noqa: E402
-    MCSTAS, RAYTRACE, edge_heights, load_reference, rms, running_mean, smoothing_pixels)
+    REFERENCE_SCENES as SCENES, edge_heights, load_reference, rms, running_mean, smoothing_pixels)
 
 RESULTS = ROOT / "benchmarks" / "results"
-SCENES = {
-    "mcstas_boa_tilt0.00": MCSTAS / "scene_boa_tilt0.00.toml",
-    "mcstas_boa_tilt0.24": MCSTAS / "scene_boa_tilt0.24.toml",
-    "mcstas_icon_tilt0.00": MCSTAS / "scene_icon_tilt0.00.toml",
-    "mcstas_icon_tilt0.24": MCSTAS / "scene_icon_tilt0.24.toml",
-    "raytrace_al_boa_tilt0": RAYTRACE / "al_boa_tilt0" / "scene.toml",
-    "raytrace_al_boa_tilt0.24_psf": RAYTRACE / "al_boa_tilt0.24_psf" / "scene.toml",
-    "raytrace_al_icon_tilt0.24": RAYTRACE / "al_icon_tilt0.24" / "scene.toml",
-    "raytrace_oxide5_boa": RAYTRACE / "oxide5_boa" / "scene.toml",
-}
-
 
 def _extremum_errors(ref, n, centre):
     """The reference's 1-sigma error of (gain, loss) at each side's extremum bin, smoothed

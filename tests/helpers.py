@@ -15,6 +15,18 @@ import numpy as np
 DATA = Path(__file__).parent / "data"
 MCSTAS = DATA / "mcstas"
 RAYTRACE = DATA / "raytrace"
+
+# Every shipped reference scene, by case name.
+REFERENCE_SCENES = {
+    "mcstas_boa_tilt0.00": MCSTAS / "scene_boa_tilt0.00.toml",
+    "mcstas_boa_tilt0.24": MCSTAS / "scene_boa_tilt0.24.toml",
+    "mcstas_icon_tilt0.00": MCSTAS / "scene_icon_tilt0.00.toml",
+    "mcstas_icon_tilt0.24": MCSTAS / "scene_icon_tilt0.24.toml",
+    "raytrace_al_boa_tilt0": RAYTRACE / "al_boa_tilt0" / "scene.toml",
+    "raytrace_al_boa_tilt0.24_psf": RAYTRACE / "al_boa_tilt0.24_psf" / "scene.toml",
+    "raytrace_al_icon_tilt0.24": RAYTRACE / "al_icon_tilt0.24" / "scene.toml",
+    "raytrace_oxide5_boa": RAYTRACE / "oxide5_boa" / "scene.toml",
+}
 BOA_SPECTRUM = MCSTAS / "spectrum_boa.csv"
 
 

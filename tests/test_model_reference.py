@@ -23,21 +23,11 @@ import pytest
 import tomllib
 
 import fwdfit
-from helpers import MCSTAS, RAYTRACE, edge_heights, load_reference, rms, smoothing_pixels
+from helpers import (MCSTAS, RAYTRACE, REFERENCE_SCENES as SCENES, edge_heights, load_reference, rms,
+                     smoothing_pixels)
 
 RMS_TOLERANCE = 0.002
 PEAK_RTOL = 0.05
-
-SCENES = {
-    "mcstas_boa_tilt0.00": MCSTAS / "scene_boa_tilt0.00.toml",
-    "mcstas_boa_tilt0.24": MCSTAS / "scene_boa_tilt0.24.toml",
-    "mcstas_icon_tilt0.00": MCSTAS / "scene_icon_tilt0.00.toml",
-    "mcstas_icon_tilt0.24": MCSTAS / "scene_icon_tilt0.24.toml",
-    "raytrace_al_boa_tilt0": RAYTRACE / "al_boa_tilt0" / "scene.toml",
-    "raytrace_al_boa_tilt0.24_psf": RAYTRACE / "al_boa_tilt0.24_psf" / "scene.toml",
-    "raytrace_al_icon_tilt0.24": RAYTRACE / "al_icon_tilt0.24" / "scene.toml",
-    "raytrace_oxide5_boa": RAYTRACE / "oxide5_boa" / "scene.toml",
-}
 
 
 def _profile_names(path: Path) -> list[str]:
