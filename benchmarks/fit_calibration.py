@@ -17,10 +17,9 @@ the truth, to tell a solver that stopped early (lower chi-square from the truth)
 an honest tail of the noise.
 
 ``fwdfit.fit`` compiles its solver anew on every call (tens of seconds), so the draws
-reuse ONE compiled solver built from the same internals as ``fit`` (``fwdfit._fit``):
-only the data change between draws. The first two draws are also fitted with the
-public ``fwdfit.fit``, which must give the same values; their compile times are
-recorded.
+reuse ONE ``fwdfit.Fitter``: only the data change between draws. The first two draws
+are also fitted with ``fwdfit.fit``, which must give the same values; their compile
+times are recorded.
 
     PYTHONPATH=src python3 benchmarks/fit_calibration.py [N_DRAWS] [TIME_LIMIT_S]
 
@@ -43,15 +42,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import equinox as eqx  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
 
 import fwdfit  # noqa: E402
-from fwdfit import _fit  # noqa: E402
-from fwdfit._parameters import assembler, free_parameters  # noqa: E402
-from fwdfit._plan import build_model  # noqa: E402
 from fwdfit._scene import FitSpec  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,57 +129,6 @@ vary = [{", ".join(f'"{k}"' for k in values)}]
 """
 
 
-class CompiledFit:
-    """``fwdfit.fit``'s solver compiled once for a scene; ``__call__`` fits new data with it.
-
-    The same steps as ``fit`` (objective, Levenberg-Marquardt, coarse-to-fine schedule,
-    covariance from the exact Jacobian), with the data as the only thing that changes.
-    """
-
-    def __init__(self, scene, max_steps: int = 200, rtol: float = 1e-7, atol: float = 1e-7):
-        self.scene = scene
-        self.free = free_parameters(scene)
-        T, sigma, self.sigma_from_data = _fit._data(scene)
-        model = build_model(scene, None, free=[p.name for p in self.free])
-        self.pixel_um = min(scene.instruments[p.instrument].pixel_um for p in scene.profiles)
-        coarse_px = _fit._SMOOTHING_SCHEDULE_UM[0] / self.pixel_um
-        self.objective = _fit.Objective(model, assembler(scene, self.free), tuple(map(jnp.asarray, T)),
-                                        tuple(map(jnp.asarray, sigma)),
-                                        jnp.zeros(2 * math.ceil(3 * coarse_px) + 1))
-        solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-        free = self.free
-        runner = eqx.filter_jit(jax.vmap(lambda o, u0: _fit._solve(o, u0, free, solver, max_steps),
-                                         in_axes=(None, 0)))
-        self.u0 = jnp.asarray([[float(p.to_unit(p.value)) for p in free]])
-        start = time.perf_counter()
-        self.compiled = runner.lower(self.objective, self.u0).compile()
-        self.compile_time_s = time.perf_counter() - start
-
-    def __call__(self, T_list, start=None):
-        """Fit data T_list (one array per profile) from the scene's start, or from ``start``
-        (physical values, one per free parameter)."""
-        scene = dataclasses.replace(self.scene, profiles=tuple(
-            dataclasses.replace(p, T=np.asarray(t)) for p, t in zip(self.scene.profiles, T_list)))
-        objective = eqx.tree_at(lambda o: o.T, self.objective, tuple(map(jnp.asarray, T_list)))
-        start_time = time.perf_counter()
-        starts, total_steps = self.u0, 0
-        if start is not None:
-            starts = jnp.asarray([[float(p.to_unit(v)) for p, v in zip(self.free, start)]])
-        for smoothing_um in _fit._SMOOTHING_SCHEDULE_UM:
-            values, chi2, success, steps = self.compiled(
-                objective.with_smoothing(smoothing_um / self.pixel_um), starts)
-            total_steps += int(np.asarray(steps)[0])
-            starts = jnp.stack([jnp.stack([p.to_unit(v[i]) for i, p in enumerate(self.free)])
-                                for v in values])
-        values, chi2, success = jax.block_until_ready((values, chi2, success))
-        wall = time.perf_counter() - start_time
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return _fit._result(scene, self.free, objective, np.asarray(values[0]), float(chi2[0]),
-                                bool(success[0]), total_steps, self.compile_time_s, wall,
-                                self.sigma_from_data)
-
-
 def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
     t_begin = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="fit_calibration_"))
@@ -204,7 +147,7 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
         return [t.T + rng.normal(0.0, NOISE, t.T.shape) for t in truth_profiles]
 
     t = time.perf_counter()
-    compiled = CompiledFit(base)
+    compiled = fwdfit.Fitter(base)
     names = [p.name for p in compiled.free]
     truth = np.array([TRUTH[n] for n in names])
     print(f"compiled once: {compiled.compile_time_s:.1f} s (setup {time.perf_counter() - t:.1f} s)",
@@ -234,7 +177,9 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
             break
         data = draw(seed)
         t = time.perf_counter()
-        result = compiled(data)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = compiled(data)
         call_time = time.perf_counter() - t
         pulls = (result.values - truth) / result.errors
         # T_att band: pixels where the band has a width (outside the sample T_att = 1 exactly)
@@ -243,7 +188,9 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
         # A pull beyond 2.5: is it the noise, or did the solver stop early? Refit from the truth.
         check = None
         if np.max(np.abs(pulls)) > 2.5:
-            again = compiled(data, start=truth)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                again = compiled(data, starts=truth[None, :])
             check = {"chi2_from_truth": again.chi2, "chi2_minus_chi2_from_truth": result.chi2 - again.chi2,
                      "values_from_truth": again.values.tolist(),
                      "pulls_from_truth": ((again.values - truth) / again.errors).tolist()}

@@ -7,6 +7,7 @@ The flow: scene file -> ``load_scene`` -> ``build_model`` + ``initial_params`` -
 from ._errors import FwdfitError as FwdfitError
 from ._fit import FitResult as FitResult
 from ._fit import FittedProfile as FittedProfile
+from ._fit import Fitter as Fitter
 from ._fit import fit as fit
 from ._fit_output import scene_toml as scene_toml
 from ._fit_output import write_fit as write_fit

@@ -9,6 +9,7 @@ not distort them) and are propagated to a 1-sigma band on T_att.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import time
@@ -27,6 +28,10 @@ from ._scene import Scene, load_scene
 
 _NOISE_FROM_NEIGHBOURS = 1.0 / (0.6745 * np.sqrt(2.0))  # MAD of differences -> sigma
 _SMOOTHING_SCHEDULE_UM = (25.0, 8.0, 3.0, 0.0)  # Gaussian sigma of each stage, coarse to fine
+_COARSE_TOLERANCE = 0.1  # standard errors: the coarse stages only need to reach the final basin
+_MAX_SCALE = 1e3  # solver units: at most this many times 1 / (the Jacobian column norm)
+_TINY_CURVATURE = 1e-12
+_DIFFERENCE_STEP = 1e-3  # solver units (standard errors) per forward difference
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,34 +150,54 @@ class Objective(eqx.Module):
                                 for m, t, s in zip(T_model, self.T, self.sigma)])
 
 
-def _solve(objective: Objective, u0, free, solver, max_steps: int):
-    """Solve from one start u0 (n_free,); returns (values, chi2, converged, steps)."""
+def _values_of(free, u):
+    """Physical values (n_free,) from unconstrained coordinates u (n_free,)."""
+    return jnp.stack([p.from_unit(u[i]) for i, p in enumerate(free)])
 
-    def values_of(u):
-        return jnp.stack([p.from_unit(u[i]) for i, p in enumerate(free)])
+
+def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
+    """Solve from one start u0 (n_free,); returns (values, chi2, converged, steps).
+
+    The solver works in w = u / scale, with scale the standard errors of u from the
+    Jacobian at the start (capped for parameters the data hardly constrain): the
+    damping then treats all parameters alike, and the solver stops when the last
+    step moved no parameter by more than ``tolerance`` standard errors and no
+    residual by more than ``tolerance`` sigma.
+
+    The solver's Jacobians are forward differences (one model evaluation per free
+    parameter): on the CPU they cost a third of the forward-mode Jacobian, whose
+    tangents break XLA's fusion of the kernels; the errors use the exact one.
+    """
 
     def plain(u):
-        return objective.residuals(values_of(u))
+        return objective.residuals(_values_of(free, u))
 
-    # Gauss-Newton needs the Jacobian at every trial point: compute it with the
-    # residuals in one forward-mode pass, so the model is traced once for both.
+    def jacobian(u, r, step):
+        """Forward differences (n_residual, n_free) at u, where plain(u) = r."""
+        shifted = jax.lax.map(lambda e: plain(u + step * e), jnp.eye(u.shape[0], dtype=u.dtype))
+        return ((shifted - r[None, :]) / step[:, None]).T
+
+    J0 = jacobian(u0, plain(u0), jnp.full_like(u0, _DIFFERENCE_STEP))
+    curvature = J0.T @ J0
+    floor = jnp.diag(curvature) / _MAX_SCALE**2 + _TINY_CURVATURE  # keeps unconstrained ones finite
+    scale = jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature + jnp.diag(floor))))
+
+    # Gauss-Newton needs the Jacobian at every trial point: give it with the residuals.
     @jax.custom_jvp
-    def residuals(u):
-        return plain(u)
+    def residuals(w):
+        return plain(w * scale)
 
     @residuals.defjvp
     def _residuals_jvp(primals, tangents):
-        def twice(u):
-            r = plain(u)
-            return r, r
+        u = primals[0] * scale
+        r = plain(u)
+        return r, (jacobian(u, r, _DIFFERENCE_STEP * scale) * scale) @ tangents[0]
 
-        jacobian, value = jax.jacfwd(twice, has_aux=True)(primals[0])
-        return value, jacobian @ tangents[0]
-
-    solution = optx.least_squares(lambda u, _: residuals(u), solver, u0, max_steps=max_steps,
-                                  throw=False)
+    solver = optx.LevenbergMarquardt(rtol=0.0, atol=tolerance, verbose=verbose)
+    solution = optx.least_squares(lambda w, _: residuals(w), solver, u0 / scale,
+                                  max_steps=max_steps, throw=False)
     chi2 = jnp.sum(solution.state.f_info.residual ** 2)  # at the last accepted step
-    return (values_of(solution.value), chi2, solution.result == optx.RESULTS.successful,
+    return (_values_of(free, solution.value * scale), chi2, solution.result == optx.RESULTS.successful,
             solution.stats["num_steps"])
 
 
@@ -184,73 +209,139 @@ def _progress(**info) -> None:
     jax.debug.callback(show, info["num_steps"][1], info["loss_last_accepted_step"][1])
 
 
-def _starts(free, n_starts: int, seed: int) -> np.ndarray:
-    """Starting points (n_starts, n_free) in unconstrained units; the first is the scene's."""
-    u0 = np.array([float(p.to_unit(p.value)) for p in free])
-    rng = np.random.default_rng(seed)
-    starts = [u0]
-    for _ in range(n_starts - 1):
-        u = []
-        for p, centre in zip(free, u0):
-            if np.isfinite(p.low) and np.isfinite(p.high):
-                u.append(rng.normal(centre, 1.0))  # spread over the box
-            elif np.isfinite(p.low) or np.isfinite(p.high):
-                u.append(centre + rng.normal(0.0, 0.2))  # ~20 % relative
-            else:
-                u.append(centre + rng.normal(0.0, 5.0))  # ~5 typical steps
-        starts.append(np.array(u))
-    return np.stack(starts)
+class Fitter:
+    """A joint fit of one scene, compiled once: call it to fit, again to refit new data.
 
-
-def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
-        n_starts: int = 1, seed: int = 0, max_steps: int = 200, rtol: float = 1e-5,
-        atol: float = 1e-5, progress: bool = False) -> FitResult:
-    """Fit the free parameters of a scene to all of its measured profiles at once.
+    Compilation (tens of seconds) depends only on the scene's geometry, free
+    parameters and number of starts; the data, the starting values and the
+    tolerance can change between calls without recompiling, e.g. for a series of
+    radiographs of one sample.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
     RMS error in T. n_starts: > 1 runs that many starting points batched with vmap
     (the scene's values and random ones inside the bounds) and keeps the best.
-    progress: print step and chi-square while fitting. Runs in float64.
+    tolerance: stop when a step moves no parameter by more than this many standard
+    errors. progress: print step and chi-square while fitting. Runs in float64.
     """
-    if not isinstance(scene, Scene):
-        scene = load_scene(scene)
-    if not jax.config.jax_enable_x64:
-        raise FwdfitError("fit needs float64: call jax.config.update('jax_enable_x64', True) first")
-    free = free_parameters(scene, vary, bounds)
-    T, sigma, sigma_from_data = _data(scene)
-    model = build_model(scene, accuracy, free=[p.name for p in free])
-    pixel_um = min(scene.instruments[p.instrument].pixel_um for p in scene.profiles)
-    coarse_px = _SMOOTHING_SCHEDULE_UM[0] / pixel_um
-    objective = Objective(model, assembler(scene, free), tuple(map(jnp.asarray, T)),
-                          tuple(map(jnp.asarray, sigma)), jnp.zeros(2 * math.ceil(3 * coarse_px) + 1))
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
-                                     verbose=_progress if progress and n_starts == 1 else False)
-    starts = jnp.asarray(_starts(free, n_starts, seed))
-    # The objective is an argument, not a closure: constants would be folded at compile time.
-    runner = eqx.filter_jit(jax.vmap(lambda o, u0: _solve(o, u0, free, solver, max_steps),
-                                     in_axes=(None, 0)))
-    start_time = time.perf_counter()
-    compiled = runner.lower(objective, starts).compile()
-    compile_time = time.perf_counter() - start_time
-    start_time = time.perf_counter()
-    # Coarse to fine: model and data smoothed first (a wide basin in which the refraction
-    # peaks cancel out), then the full-resolution fit from there.
-    total_steps = 0
-    for stage, smoothing_um in enumerate(_SMOOTHING_SCHEDULE_UM):
-        if progress:
-            print(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)}: model and data smoothed "
-                  f"by a {smoothing_um:g} µm Gaussian", flush=True)
-        values, chi2, success, steps = compiled(objective.with_smoothing(smoothing_um / pixel_um), starts)
-        total_steps += np.asarray(steps)
-        starts = jnp.stack([jnp.stack([p.to_unit(v[i]) for i, p in enumerate(free)]) for v in values])
-    values, chi2, success, steps = jax.block_until_ready((values, chi2, success, steps))
-    wall_time = time.perf_counter() - start_time
-    finite = np.isfinite(np.asarray(chi2)) & np.all(np.isfinite(np.asarray(values)), axis=1)
-    if not finite.any():
-        raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
-    best = int(np.argmin(np.where(finite, np.asarray(chi2), np.inf)))
-    return _result(scene, free, objective, np.asarray(values[best]), float(chi2[best]),
-                   bool(success[best]), int(total_steps[best]), compile_time, wall_time, sigma_from_data)
+
+    def __init__(self, scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
+                 n_starts: int = 1, max_steps: int = 200, tolerance: float = 1e-2,
+                 progress: bool = False):
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
+        if not jax.config.jax_enable_x64:
+            raise FwdfitError("fit needs float64: call jax.config.update('jax_enable_x64', True) first")
+        if not tolerance > 0:
+            raise FwdfitError(f"tolerance must be > 0, got {tolerance}")
+        self.scene, self.n_starts, self.tolerance, self.progress = scene, n_starts, tolerance, progress
+        self.free = free_parameters(scene, vary, bounds)
+        T, sigma, self.sigma_from_data = _data(scene)
+        model = build_model(scene, accuracy, free=[p.name for p in self.free])
+        self.pixel_um = min(scene.instruments[p.instrument].pixel_um for p in scene.profiles)
+        coarse_px = _SMOOTHING_SCHEDULE_UM[0] / self.pixel_um
+        self.objective = Objective(model, assembler(scene, self.free), tuple(map(jnp.asarray, T)),
+                                   tuple(map(jnp.asarray, sigma)), jnp.zeros(2 * math.ceil(3 * coarse_px) + 1))
+        free = self.free
+        verbose = _progress if progress and n_starts == 1 else False
+        # The objective is an argument, not a closure: constants would be folded at compile time.
+        runner = eqx.filter_jit(jax.vmap(
+            lambda o, u0, tol: _solve(o, u0, tol, free, max_steps, verbose), in_axes=(None, 0, None)))
+        start_time = time.perf_counter()
+        lowered = runner.lower(self.objective, jnp.zeros((n_starts, len(free))), jnp.asarray(tolerance))
+        # XLA compiles the solver on a second thread while this one builds the exact
+        # Jacobian that gives the errors at the optimum.
+        with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+            solver = pool.submit(lowered.compile)
+            jax.block_until_ready(_linearise(self.objective, jnp.asarray([p.value for p in free])))
+            self._compiled = solver.result()
+        self.compile_time_s = time.perf_counter() - start_time
+
+    def starts(self, seed: int = 0) -> np.ndarray:
+        """Starting values (n_starts, n_free) in physical units: the scene's, then random ones."""
+        u0 = np.array([float(p.to_unit(p.value)) for p in self.free])
+        rng = np.random.default_rng(seed)
+        rows = [u0]
+        for _ in range(self.n_starts - 1):
+            u = []
+            for p, centre in zip(self.free, u0):
+                if np.isfinite(p.low) and np.isfinite(p.high):
+                    u.append(rng.normal(centre, 1.0))  # spread over the box
+                elif np.isfinite(p.low) or np.isfinite(p.high):
+                    u.append(centre + rng.normal(0.0, 0.2))  # ~20 % relative
+                else:
+                    u.append(centre + rng.normal(0.0, 5.0))  # ~5 typical steps
+            rows.append(np.array(u))
+        return np.array([[float(p.from_unit(v)) for p, v in zip(self.free, row)] for row in rows])
+
+    def __call__(self, T=None, T_err=None, *, starts=None, seed: int = 0) -> FitResult:
+        """Fit; returns the best of the starts.
+
+        T, T_err: new data, one array per profile on the scene's pixels (default: the
+        scene's; T_err defaults to the scene's, else it is estimated from T).
+        starts: (n_starts, n_free) physical starting values inside the bounds
+        (default: ``self.starts(seed)``).
+        """
+        scene, objective, sigma_from_data = self.scene, self.objective, self.sigma_from_data
+        if T is not None:
+            profiles = []
+            for p, t, e in zip(scene.profiles, T, T_err if T_err is not None else [None] * len(T)):
+                profiles.append(dataclasses.replace(p, T=np.asarray(t, dtype=float).copy(),
+                                                    T_err=p.T_err if e is None else np.asarray(e, dtype=float).copy()))
+            if len(profiles) != len(scene.profiles) or any(
+                    q.T.shape != p.x_um.shape for q, p in zip(profiles, scene.profiles)):
+                raise FwdfitError("T must hold one array per profile, on the profile's pixels")
+            scene = dataclasses.replace(scene, profiles=tuple(profiles))
+            data, sigma, sigma_from_data = _data(scene)
+            objective = eqx.tree_at(lambda o: (o.T, o.sigma), objective,
+                                    (tuple(map(jnp.asarray, data)), tuple(map(jnp.asarray, sigma))))
+        starts = self.starts(seed) if starts is None else np.asarray(starts, dtype=float)
+        if starts.shape != (self.n_starts, len(self.free)):
+            raise FwdfitError(f"starts must have shape ({self.n_starts}, {len(self.free)}), got {starts.shape}")
+        for p, column in zip(self.free, starts.T):
+            if not np.all((column > p.low) & (column < p.high)):
+                raise FwdfitError(f"starts: {p.name} must lie inside its bounds ({p.low:g}, {p.high:g})")
+        u = jnp.asarray([[float(p.to_unit(v)) for p, v in zip(self.free, row)] for row in starts])
+        start_time = time.perf_counter()
+        # Coarse to fine: model and data smoothed first (a wide basin in which the refraction
+        # peaks cancel out), then the full-resolution fit from there. The coarse stages only
+        # need to land in the final basin.
+        total_steps = 0
+        for stage, smoothing_um in enumerate(_SMOOTHING_SCHEDULE_UM):
+            final = stage == len(_SMOOTHING_SCHEDULE_UM) - 1
+            if self.progress:
+                print(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)}: model and data smoothed "
+                      f"by a {smoothing_um:g} µm Gaussian", flush=True)
+            tolerance = self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE)
+            values, chi2, success, steps = self._compiled(objective.with_smoothing(smoothing_um / self.pixel_um),
+                                                          u, jnp.asarray(tolerance))
+            total_steps += np.asarray(steps)
+            u = jnp.stack([jnp.stack([p.to_unit(v[i]) for i, p in enumerate(self.free)]) for v in values])
+        values, chi2, success, steps = jax.block_until_ready((values, chi2, success, steps))
+        wall_time = time.perf_counter() - start_time
+        finite = np.isfinite(np.asarray(chi2)) & np.all(np.isfinite(np.asarray(values)), axis=1)
+        if not finite.any():
+            raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
+        best = int(np.argmin(np.where(finite, np.asarray(chi2), np.inf)))
+        return _result(scene, self.free, objective, np.asarray(values[best]), float(chi2[best]),
+                       bool(success[best]), int(total_steps[best]), self.compile_time_s, wall_time,
+                       sigma_from_data)
+
+
+def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
+        n_starts: int = 1, seed: int = 0, max_steps: int = 200, tolerance: float = 1e-2,
+        progress: bool = False) -> FitResult:
+    """Fit the free parameters of a scene to all of its measured profiles at once.
+
+    vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
+    RMS error in T. n_starts: > 1 runs that many starting points batched with vmap
+    (the scene's values and random ones inside the bounds, drawn with ``seed``) and
+    keeps the best. tolerance: stop when a step moves no parameter by more than
+    this many standard errors. progress: print step and chi-square while fitting.
+    Runs in float64. To refit new data without recompiling, use ``Fitter``.
+    """
+    fitter = Fitter(scene, vary=vary, bounds=bounds, accuracy=accuracy, n_starts=n_starts,
+                    max_steps=max_steps, tolerance=tolerance, progress=progress)
+    return fitter(seed=seed)
 
 
 @eqx.filter_jit
