@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 import tifffile
+from _results import results_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results" / "radiograph.json"
 N_SAMPLE, N_OPEN, N_DARK = 60, 10, 5
 OPEN_COUNTS, DARK_COUNTS = 2000.0, 100.0
 TILT_DEG = 0.5
@@ -99,10 +99,13 @@ def run_self(*options: str) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=2048, help="frame side, pixels")
+    parser.add_argument("--quick", action="store_true", help="256 x 256 frames (CI smoke run)")
     parser.add_argument("--write", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--profile", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--combine", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.quick:
+        args.size = 256
     if args.write:
         write_stacks(args.write, args.size)
         return
@@ -124,8 +127,7 @@ def main() -> None:
                           "platform": platform.platform()}}
     text = json.dumps(result, indent=2)
     print(text)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text + "\n")
+    (results_dir(args.quick) / "radiograph.json").write_text(text + "\n")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ reuse ONE ``fwdfit.Fitter``: only the data change between draws. The first two d
 are also fitted with ``fwdfit.fit``, which must give the same values; their compile
 times are recorded.
 
-    PYTHONPATH=src python3 benchmarks/fit_calibration.py [N_DRAWS] [TIME_LIMIT_S]
+    python benchmarks/fit_calibration.py [N_DRAWS] [TIME_LIMIT_S] [--quick]
 
 Writes ``benchmarks/results/fit_calibration.json``.
 """
@@ -46,10 +46,10 @@ import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
 
 import fwdfit  # noqa: E402
+from _results import results_dir  # noqa: E402
 from fwdfit._scene import FitSpec  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
 SPECTRUM = ROOT / "tests" / "data" / "mcstas" / "spectrum_boa.csv"
 NOISE = 0.01
 AL = fwdfit.constants_from_formula("Al", 2.70)
@@ -129,7 +129,8 @@ vary = [{", ".join(f'"{k}"' for k in values)}]
 """
 
 
-def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
+def main(n_draws: int = 40, time_limit_s: float = 900.0, quick: bool = False) -> dict:
+    RESULTS = results_dir(quick)
     t_begin = time.perf_counter()
     folder = Path(tempfile.mkdtemp(prefix="fit_calibration_"))
     (folder / "truth.toml").write_text(scene_text(TRUTH))
@@ -254,7 +255,6 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
                      "optimistix": optx.__version__, "python": platform.python_version()},
         "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()},
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "fit_calibration.json").write_text(json.dumps(output, indent=1) + "\n")
     print(f"\n{n} draws; coverage of the truth within 1 sigma (expect 0.683 +- "
           f"{math.sqrt(0.683 * 0.317 / n):.3f}), 2 sigma (0.954), pull mean / std, scatter / error:")
@@ -270,5 +270,6 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0) -> dict:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40,
-         float(sys.argv[2]) if len(sys.argv) > 2 else 900.0)
+    arguments = [a for a in sys.argv[1:] if a != "--quick"]
+    main(3 if "--quick" in sys.argv[1:] else int(arguments[0]) if arguments else 40,
+         float(arguments[1]) if len(arguments) > 1 else 900.0, quick="--quick" in sys.argv[1:])

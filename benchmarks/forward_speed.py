@@ -1,12 +1,13 @@
 """Forward-model speed on the 10-distance BOA Al scene (compile and evaluation times).
 
-    python benchmarks/forward_speed.py [--pixels 670]
+    python benchmarks/forward_speed.py [--pixels 670] [--quick]
 
 Uses tests/data/mcstas/scene_boa_tilt0.24.toml (10 distances 1.1-34.4 mm, white
 beam, 0.24 deg tilt) with each profile cut to ``--pixels`` pixels around the
 centre; times one evaluation of all profiles (T and T_att) after compilation, in
-float64 and float32, and one forward-mode Jacobian with respect to five
-parameters (what a fit step needs). Writes benchmarks/results/forward_speed.json.
+float64 and float32, one forward-mode Jacobian with respect to five parameters
+(what the errors need) and five forward differences (what a solver step needs).
+Writes benchmarks/results/forward_speed.json.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+from _results import results_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "tests/data/mcstas/scene_boa_tilt0.24.toml"
@@ -67,16 +70,30 @@ def measure(pixels: int, x64: bool, repeats: int = 20) -> dict:
     for _ in range(repeats // 4):
         jax.block_until_ready(compiled_j(model, v0))
     jac_ms = (time.perf_counter() - start) / (repeats // 4) * 1e3
+
+    # What a fit step costs: forward differences, one evaluation per parameter (fwdfit's solver).
+    differences = eqx.filter_jit(lambda m, v: jax.lax.map(
+        lambda e: outputs(m, v + 1e-6 * e), jnp.eye(v.shape[0], dtype=v.dtype)))
+    compiled_d = differences.lower(model, v0).compile()
+    jax.block_until_ready(compiled_d(model, v0))
+    start = time.perf_counter()
+    for _ in range(repeats // 4):
+        jax.block_until_ready(compiled_d(model, v0))
+    differences_ms = (time.perf_counter() - start) / (repeats // 4) * 1e3
     return {"pixels_per_profile": pixels, "profiles": len(profiles), "float64": x64,
             "compile_s": round(compile_s, 2), "eval_ms": round(eval_ms, 2),
-            "jacobian_5_params_compile_s": round(jac_compile_s, 2), "jacobian_5_params_ms": round(jac_ms, 1)}
+            "jacobian_5_params_compile_s": round(jac_compile_s, 2), "jacobian_5_params_ms": round(jac_ms, 1),
+            "forward_differences_5_params_ms": round(differences_ms, 1)}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--pixels", type=int, default=670)
+    parser.add_argument("--quick", action="store_true", help="200 pixels per profile (CI smoke run)")
     parser.add_argument("--child", choices=["64", "32"])
     args = parser.parse_args()
+    if args.quick:
+        args.pixels = 200
     if args.child:
         print(json.dumps(measure(args.pixels, args.child == "64")))
         return
@@ -91,7 +108,7 @@ def main() -> None:
     record = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                           "device": str(jax.devices()[0]), "jax": jax.__version__},
               "scene": str(SCENE.relative_to(ROOT)), "results": rows}
-    out_path = ROOT / "benchmarks/results/forward_speed.json"
+    out_path = results_dir(args.quick) / "forward_speed.json"
     out_path.write_text(json.dumps(record, indent=2) + "\n")
     print(f"wrote {out_path}")
 

@@ -13,7 +13,7 @@ reference, with the definitions the tests use (``tests/helpers.py``):
 
 Writes ``benchmarks/results/reference_table.json`` and ``reference_table.md``.
 
-    PYTHONPATH=src python3 benchmarks/reference_table.py
+    python benchmarks/reference_table.py [--quick]
 """
 
 from __future__ import annotations
@@ -35,10 +35,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # one definition of the metrics, shared with the tests
 
 import fwdfit  # noqa: E402
+from _results import results_dir  # noqa: E402
 from helpers import (  # noqa: E402
     REFERENCE_SCENES as SCENES, edge_heights, load_reference, rms, running_mean, smoothing_pixels)
 
-RESULTS = ROOT / "benchmarks" / "results"
 
 def _extremum_errors(ref, n, centre):
     """The reference's 1-sigma error of (gain, loss) at each side's extremum bin, smoothed
@@ -136,13 +136,14 @@ def markdown(rows: list[dict], timings: dict[str, float]) -> str:
 
 
 def main() -> None:
+    quick = "--quick" in sys.argv[1:]  # the first scene only (CI smoke run)
+    RESULTS = results_dir(quick)
     rows, timings = [], {}
-    for case, path in SCENES.items():
+    for case, path in list(SCENES.items())[:1 if quick else None]:
         case_rows, seconds = compare_case(case, path)
         rows += case_rows
         timings[case] = seconds
         print(f"{case}: {len(case_rows)} profiles, {seconds:.1f} s", flush=True)
-    RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {"jax": jax.__version__, "device": str(jax.devices()[0]), "python": platform.python_version(),
             "machine": platform.machine(), "accuracy": "default (scene's, 1e-3)", "dtype": "float64"}
     (RESULTS / "reference_table.json").write_text(json.dumps(

@@ -11,7 +11,8 @@ lines (tests/data/raytrace/al_icon_tilt0.24):
 - fwdfit's exact Monte Carlo reference at several ray counts (error ~ 1/sqrt(rays));
 - the Paganin filter (b_factor 1): time and RMS of T_filtered - T_att.
 
-Writes benchmarks/results/speed_vs_error.{json,png}; ``--quick`` runs a smaller sweep.
+Writes benchmarks/results/speed_vs_error.{json,png}; ``--quick`` runs a smaller sweep
+into benchmarks/results/quick/.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import equinox as eqx  # noqa: E402
 import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
+from _results import results_dir  # noqa: E402
 from fwdfit._paganin_scene import profile_tau_um2  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -120,8 +122,7 @@ def main() -> None:
             "paganin": paganin_row(scene, [c.T_att for c in converged], repeats),
         }
     record["machine"] = {"device": str(jax.devices()[0]), "jax": jax.__version__}
-    suffix = "_quick" if args.quick else ""
-    out = ROOT / f"benchmarks/results/speed_vs_error{suffix}.json"
+    out = results_dir(args.quick) / "speed_vs_error.json"
     out.write_text(json.dumps(record, indent=2) + "\n")
     plot(record, out.with_suffix(".png"))
     print(f"wrote {out}")

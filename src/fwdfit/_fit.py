@@ -28,8 +28,7 @@ from ._scene import Scene, load_scene
 
 _NOISE_FROM_NEIGHBOURS = 1.0 / (0.6745 * np.sqrt(2.0))  # MAD of differences -> sigma
 _SMOOTHING_SCHEDULE_UM = (25.0, 8.0, 3.0, 0.0)  # Gaussian sigma of each stage, coarse to fine
-_COARSE_TOLERANCE = 0.1  # standard errors: the coarse stages only need to reach the final basin
-_MAX_SCALE = 1e3  # solver units: at most this many times 1 / (the Jacobian column norm)
+_COARSE_TOLERANCE = 0.3  # standard errors: the coarse stages only need to reach the final basin
 _TINY_CURVATURE = 1e-12
 _DIFFERENCE_STEP = 1e-3  # solver units (standard errors) per forward difference
 
@@ -72,6 +71,7 @@ class FitResult:
     warnings: tuple[str, ...]
     sigma_from_data: bool
     scene: Scene
+    chi2_per_start: np.ndarray  # (n_starts,) final chi-square from every start (inf if it diverged)
 
     @property
     def chi2_reduced(self) -> float:
@@ -159,10 +159,12 @@ def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
     """Solve from one start u0 (n_free,); returns (values, chi2, converged, steps).
 
     The solver works in w = u / scale, with scale the standard errors of u from the
-    Jacobian at the start (capped for parameters the data hardly constrain): the
-    damping then treats all parameters alike, and the solver stops when the last
-    step moved no parameter by more than ``tolerance`` standard errors and no
-    residual by more than ``tolerance`` sigma.
+    Jacobian at the start, at most one typical step (u's unit) for parameters the
+    data hardly constrain, which then move no faster than the rest: the damping
+    treats all parameters alike, and the solver stops when the last step moved no
+    parameter by more than ``tolerance`` standard errors and no residual by more
+    than ``tolerance`` sigma. Returns the final u too, so that the next stage starts
+    exactly there (a value at its bound has no finite u to convert back to).
 
     The solver's Jacobians are forward differences (one model evaluation per free
     parameter): on the CPU they cost a third of the forward-mode Jacobian, whose
@@ -178,9 +180,8 @@ def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
         return ((shifted - r[None, :]) / step[:, None]).T
 
     J0 = jacobian(u0, plain(u0), jnp.full_like(u0, _DIFFERENCE_STEP))
-    curvature = J0.T @ J0
-    floor = jnp.diag(curvature) / _MAX_SCALE**2 + _TINY_CURVATURE  # keeps unconstrained ones finite
-    scale = jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature + jnp.diag(floor))))
+    curvature = J0.T @ J0 + _TINY_CURVATURE * jnp.eye(u0.shape[0], dtype=u0.dtype)
+    scale = jnp.minimum(jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature))), 1.0)
 
     # Gauss-Newton needs the Jacobian at every trial point: give it with the residuals.
     @jax.custom_jvp
@@ -196,9 +197,9 @@ def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
     solver = optx.LevenbergMarquardt(rtol=0.0, atol=tolerance, verbose=verbose)
     solution = optx.least_squares(lambda w, _: residuals(w), solver, u0 / scale,
                                   max_steps=max_steps, throw=False)
-    chi2 = jnp.sum(solution.state.f_info.residual ** 2)  # at the last accepted step
-    return (_values_of(free, solution.value * scale), chi2, solution.result == optx.RESULTS.successful,
-            solution.stats["num_steps"])
+    u = solution.value * scale
+    chi2 = jnp.sum(plain(u) ** 2)
+    return u, chi2, solution.result == optx.RESULTS.successful, solution.stats["num_steps"]
 
 
 def _progress(**info) -> None:
@@ -312,19 +313,19 @@ class Fitter:
                 print(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)}: model and data smoothed "
                       f"by a {smoothing_um:g} µm Gaussian", flush=True)
             tolerance = self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE)
-            values, chi2, success, steps = self._compiled(objective.with_smoothing(smoothing_um / self.pixel_um),
-                                                          u, jnp.asarray(tolerance))
+            u, chi2, success, steps = self._compiled(objective.with_smoothing(smoothing_um / self.pixel_um),
+                                                     u, jnp.asarray(tolerance))
             total_steps += np.asarray(steps)
-            u = jnp.stack([jnp.stack([p.to_unit(v[i]) for i, p in enumerate(self.free)]) for v in values])
-        values, chi2, success, steps = jax.block_until_ready((values, chi2, success, steps))
+        values = jax.vmap(lambda x: _values_of(self.free, x))(u)
+        values, chi2, success = jax.block_until_ready((values, chi2, success))
         wall_time = time.perf_counter() - start_time
         finite = np.isfinite(np.asarray(chi2)) & np.all(np.isfinite(np.asarray(values)), axis=1)
         if not finite.any():
             raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
         best = int(np.argmin(np.where(finite, np.asarray(chi2), np.inf)))
-        return _result(scene, self.free, objective, np.asarray(values[best]), float(chi2[best]),
-                       bool(success[best]), int(total_steps[best]), self.compile_time_s, wall_time,
-                       sigma_from_data)
+        return _result(scene, self.free, objective, np.asarray(values[best]),
+                       np.where(finite, np.asarray(chi2), np.inf), best, bool(success[best]),
+                       int(total_steps[best]), self.compile_time_s, wall_time, sigma_from_data)
 
 
 def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
@@ -357,10 +358,10 @@ def _linearise(objective: Objective, values):
     return jacobian, att_jacobian, profiles
 
 
-def _result(scene, free, objective: Objective, values, chi2, converged, steps, compile_time,
-            wall_time, sigma_from_data) -> FitResult:
-    values_j = jnp.asarray(values)
-    jacobian, att_jacobian, (T_model, T_att) = _linearise(objective, values_j)
+def _result(scene, free, objective: Objective, values, chi2_per_start, best, converged, steps,
+            compile_time, wall_time, sigma_from_data) -> FitResult:
+    chi2 = float(chi2_per_start[best])
+    jacobian, att_jacobian, (T_model, T_att) = _linearise(objective, jnp.asarray(values))
     jacobian, att_jacobian = np.asarray(jacobian), np.asarray(att_jacobian)
     n_data = jacobian.shape[0]
     dof = n_data - len(free)
@@ -391,7 +392,7 @@ def _result(scene, free, objective: Objective, values, chi2, converged, steps, c
     fitted = _fitted_scene(scene, free, values)
     return FitResult(tuple(p.name for p in free), values, errors, correlation, chi2, dof, converged,
                      message, steps, compile_time, wall_time, tuple(profiles), tuple(notes),
-                     sigma_from_data, fitted)
+                     sigma_from_data, fitted, chi2_per_start)
 
 
 def _fitted_scene(scene: Scene, free: tuple[FreeParameter, ...], values) -> Scene:

@@ -32,6 +32,7 @@ def result_dict(result: FitResult) -> dict:
         "chi2": result.chi2,
         "dof": result.dof,
         "chi2_reduced": result.chi2_reduced,
+        "chi2_per_start": [float(c) if np.isfinite(c) else None for c in result.chi2_per_start],
         "sigma_from_data": result.sigma_from_data,
         "converged": result.converged,
         "message": result.message,

@@ -1,0 +1,1 @@
+"""fwdfit's benchmarks: ``python -m benchmarks [--quick] [NAME ...]`` regenerates their results."""
