@@ -30,7 +30,7 @@ _NOISE_FROM_NEIGHBOURS = 1.0 / (0.6745 * np.sqrt(2.0))  # MAD of differences -> 
 _SMOOTHING_SCHEDULE_UM = (25.0, 8.0, 3.0, 0.0)  # Gaussian sigma of each stage, coarse to fine
 _COARSE_TOLERANCE = 0.3  # standard errors: the coarse stages only need to reach the final basin
 _TINY_CURVATURE = 1e-12
-_DIFFERENCE_STEP = 1e-3  # solver units (standard errors) per forward difference
+_DIFFERENCE_STEP = 1e-3  # forward-difference step, in solver units (typical steps for the first Jacobian)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,18 +156,18 @@ def _values_of(free, u):
 
 
 def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
-    """Solve from one start u0 (n_free,); returns (values, chi2, converged, steps).
+    """Solve from one start u0 (n_free,); returns (u, chi2, converged, steps) at the end.
 
     The solver works in w = u / scale, with scale the standard errors of u from the
     Jacobian at the start, at most one typical step (u's unit) for parameters the
     data hardly constrain, which then move no faster than the rest: the damping
     treats all parameters alike, and the solver stops when the last step moved no
     parameter by more than ``tolerance`` standard errors and no residual by more
-    than ``tolerance`` sigma. Returns the final u too, so that the next stage starts
+    than ``tolerance`` sigma. It returns u, not values, so that the next stage starts
     exactly there (a value at its bound has no finite u to convert back to).
 
     The solver's Jacobians are forward differences (one model evaluation per free
-    parameter): on the CPU they cost a third of the forward-mode Jacobian, whose
+    parameter): on the CPU they cost a fifth of the forward-mode Jacobian, whose
     tangents break XLA's fusion of the kernels; the errors use the exact one.
     """
 
