@@ -18,13 +18,14 @@ tilt too (truth 0, start 0.05°). Pixel ranges are tight (they cover every pixel
 which keeps the fits fast. The reference's Monte Carlo noise is RMS 1-2e-3 per pixel
 (at most ~2 % in a few edge pixels at 1.1 mm), well below the added 1 %.
 
-Runtime on 2 CPU cores: tracing ~30 s, Al fit ~70 s, oxide fit ~200 s (marked slow;
-``-m "not slow"`` leaves ~2 minutes), CLI tests ~20 s.
+Runtime on 2 CPU cores: tracing ~30 s, Al fit ~60 s, oxide fit ~75 s (marked slow;
+``-m "not slow"`` leaves ~2 minutes), CLI tests ~20 s (each fit includes its compilation).
 
-Known limits of the fitter found while writing these tests (not asserted here): from
-tilt 0.142° with thickness 1200 µm (the tilt 20 % + 0.05° low while the thickness is
-20 % high) or from tilt 0.338° with 800 µm, the Al fit ends in a wrong minimum (tilt ~0,
-SLD 1.6 or 0); the start used below (both high) converges.
+Known limits found with the first version of the solver, before the coarse-to-fine
+stages (not asserted here): from tilt 0.142° with thickness 1200 µm (the tilt 20 % +
+0.05° low while the thickness is 20 % high) or from tilt 0.338° with 800 µm, the Al fit
+ended in a wrong minimum (tilt ~0, SLD 1.6 or 0). ``test_multistart.py`` now checks
+random starts inside the bounds.
 
 The CLI tests use small scenes: bad input fails before anything is compiled, and
 the one successful ``fwdfit fit`` uses data made by ``fwdfit.simulate``.

@@ -319,12 +319,24 @@ def test_gradients_match_central_differences(tmp_path):
     print(f"gradient check: largest relative error {worst:.1e}")
 
 
-def test_windows_follow_a_free_tilt(tmp_path):
-    """A model built for tilt 0 with ``sample.tilt_deg`` free (as a fit does) must still
-    conserve intensity (mu = 0) when the tilt parameter reaches 0.5°. Measured: at 8.5 mm
-    sum (T - 1) * pixel = -0.29 µm of ~4 µm displaced; fine up to 0.24°."""
-    scene = write_scene(tmp_path, [al_layer(mu=0.0)], profiles=[("d08.5mm", 8.5, -1500.0, 1500.0)],
+# Tilt at which the kernel of the Al block's entering face is widest (BOA white beam to
+# 10 Å): the aperture's grazing angles just reach the critical angle, so the totally
+# reflected and the straight rays land furthest apart.
+WIDEST_TILT_DEG = math.degrees(10.0 * math.sqrt(2.078e-6 / math.pi) + 20.0 / (7500.0 - 35.4))
+
+
+def test_kernel_windows_hold_every_ray(tmp_path):
+    """mu = 0 conserves intensity (|sum (T - 1) * pixel| < 1e-6 µm, of 4 to 9 µm displaced)
+    at 34.4 mm for tilts 0, 0.24°, the widest-kernel tilt (±0.62°) and 1°: with windows
+    sized for each tilt alone, and with one model whose tilt is free (windows for ±5°).
+    A window too narrow loses the rays outside it."""
+    scene = write_scene(tmp_path, [al_layer(mu=0.0)], profiles=[("d34.4mm", 34.4, -1500.0, 1500.0)],
                         spectrum=WHITE, tilt_deg=0.0, **BOA)
-    model = fwdfit.build_model(scene, free=("sample.tilt_deg",))
-    (T,), _ = _run(model, replace_params(fwdfit.initial_params(scene), tilt_deg=0.5))
-    assert abs(np.sum(T - 1.0) * PIXEL_UM) < 0.01
+    params = fwdfit.initial_params(scene)
+    free = fwdfit.build_model(scene, free=("sample.tilt_deg",))
+    for tilt in (0.0, 0.24, WIDEST_TILT_DEG, -WIDEST_TILT_DEG, 1.0):
+        fixed = fwdfit.build_model(scene, tilt_range_deg=(tilt, tilt))
+        for model in (fixed, free):
+            (T,), _ = _run(model, replace_params(params, tilt_deg=tilt))
+            assert 0.5 * np.sum(np.abs(T - 1.0)) * PIXEL_UM > 1.0, tilt
+            assert abs(np.sum(T - 1.0) * PIXEL_UM) < 1e-6, (tilt, model is free)

@@ -237,7 +237,9 @@ class Fitter:
         self.scene, self.n_starts, self.tolerance, self.progress = scene, n_starts, tolerance, progress
         self.free = free_parameters(scene, vary, bounds)
         T, sigma, self.sigma_from_data = _data(scene)
-        model = build_model(scene, accuracy, free=[p.name for p in self.free])
+        tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)
+        model = build_model(scene, accuracy, free=[p.name for p in self.free],
+                            tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
         self.pixel_um = min(scene.instruments[p.instrument].pixel_um for p in scene.profiles)
         coarse_px = _SMOOTHING_SCHEDULE_UM[0] / self.pixel_um
         self.objective = Objective(model, assembler(scene, self.free), tuple(map(jnp.asarray, T)),

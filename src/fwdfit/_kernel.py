@@ -76,3 +76,22 @@ def deflected_cumulative(mass: AngularMass, grazing_at_edge, k):
     reflected_from = jnp.clip(-grazing_at_edge, mass.a_min, critical)
     reflected = mass.between(reflected_from, critical)
     return refracted, reflected
+
+
+def landing_range(offset, half_width, k):
+    """Outgoing grazing angles (lo, hi) (rad) of every ray that crosses the interface.
+
+    offset, half_width: as in ``AngularMass`` (the crossing rays have grazing angles
+    a in [max(offset - half_width, 0), max(offset + half_width, 0)]); k: the value
+    of largest |k| over the spectrum (k ~ lambda^2 keeps its sign). Straight,
+    refracted and reflected rays all leave at angles in [lo, hi]: such a ray lands
+    at (angle * lever) from the interface's projection. Works on NumPy and JAX arrays.
+    """
+    a_min = jnp.maximum(offset - half_width, 0.0)
+    a_max = jnp.maximum(offset + half_width, 0.0)
+    root = jnp.sqrt(jnp.abs(k))
+    reflected = -jnp.minimum(a_max, root)  # the steepest totally reflected ray
+    refracted = jnp.sqrt(jnp.maximum(a_min * a_min - k, 0.0))
+    lo = jnp.where(k > 0, jnp.where(a_min < root, reflected, refracted), a_min)
+    hi = jnp.where(k > 0, a_max, jnp.sqrt(a_max * a_max - jnp.minimum(k, 0.0)))
+    return lo, hi

@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._aperture import APERTURES
-from ._kernel import AngularMass, deflected_cumulative, straight_cumulative
+from ._kernel import AngularMass, deflected_cumulative, landing_range, straight_cumulative
 
 
 class ModelParams(eqx.Module):
@@ -197,7 +197,10 @@ def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, 
         before = np.ravel([(f.left, f.right) for f in faces])
         after = np.ravel([(f.right, f.left) for f in faces])
         b = boundary[position]
-        centre = jnp.round((b + slope * distance_um - first_edge_um) / group.bin_um).astype(jnp.int32)
+        landing_um = _landing_centre_um(group, *jax.lax.stop_gradient(
+            (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))),
+            sign, distance_um)
+        centre = jnp.round((landing_um - first_edge_um) / group.bin_um).astype(jnp.int32)
         start = jnp.clip(centre - group.window, 0, group.n_edges - n_window)
         window_edges = first_edge_um + group.bin_um * (start[:, None] + jnp.arange(n_window))
         sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T,
@@ -209,6 +212,18 @@ def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, 
         T = T + _place(scale * jnp.diff(C_T, axis=1), start, T.shape[0])
         T_att = T_att + _place(scale * jnp.diff(C_att, axis=1), start, T.shape[0])
     return T, T_att
+
+
+def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):
+    """Detector position (µm) at the middle of where the crossing rays of each side land.
+
+    b, z_mid, k_longest, sign: per side (n_side,); the window is centred there, so
+    its half-width (``_plan``) need not grow with the tilt.
+    """
+    to_sample_um = group.aperture_distance_um - distance_um
+    lo, hi = landing_range(sign * (b / to_sample_um - slope), 0.5 * group.aperture_um / to_sample_um,
+                           k_longest)
+    return b + slope * distance_um + sign * 0.5 * (lo + hi) * (distance_um - z_mid)
 
 
 def _place(windows, starts, n_bins: int):

@@ -23,7 +23,7 @@ import numpy as np
 
 from ._errors import FwdfitError
 from ._model import ModelParams
-from ._plan import initial_params
+from ._plan import MAX_TILT_DEG, initial_params
 from ._scene import Scene
 
 _INF = math.inf
@@ -35,7 +35,7 @@ _LAYER_KEYS = {
     "mu_per_m_per_A": ((0.0, _INF), 0.1),
 }
 _SAMPLE_KEYS = {
-    "tilt_deg": ((-5.0, 5.0), 0.01),
+    "tilt_deg": ((-MAX_TILT_DEG, MAX_TILT_DEG), 0.01),
     "centre_um": ((-_INF, _INF), 1.0),
     "depth_mm": ((0.0, _INF), 0.01),
     "drift_um_per_mm": ((-_INF, _INF), 0.01),

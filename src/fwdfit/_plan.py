@@ -2,9 +2,10 @@
 
 Everything here is static (NumPy): it decides how much work the model does.
 The accuracy knob (target RMS error in T) sets the quadrature sizes; the kernel
-windows cover every pixel a refracted or reflected ray can reach; interfaces with
-neither refractive nor attenuation contrast get no kernel; zero-thickness layers
-are skipped.
+windows cover every pixel a refracted or reflected ray can reach, around the
+landing centre that the model computes from the current parameters, for every
+tilt the model must serve; interfaces with neither refractive nor attenuation
+contrast get no kernel; zero-thickness layers are skipped.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._errors import FwdfitError
+from ._kernel import landing_range
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
 from ._scene import Scene
 from ._spectrum import GaussianLine, wavelength_quadrature
@@ -24,7 +26,8 @@ _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
-_FREE_TILT_ROOM_DEG = 0.5  # a free tilt may move this far and its kernels still fit their windows
+_OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
+MAX_TILT_DEG = 5.0  # default bound of a free tilt; the model is paraxial beyond ~3°
 
 
 def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float) -> tuple[int, int]:
@@ -92,21 +95,27 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
     return tuple(faces)
 
 
-def _window_um(scene: Scene, instrument, spectrum, distance_mm: float, margin: float,
-               free_tilt_deg: float) -> float:
-    """Half-width (µm) around an interface's projection that its kernel can reach.
+def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
+               tilt_range_deg: tuple[float, float]) -> float:
+    """Half-width (µm) around a side's landing centre (``_model``) that its kernel reaches.
 
-    free_tilt_deg: how far a free tilt may move from the scene's value.
+    The largest over every grazing offset of the aperture centre that the profile's
+    positions and ``tilt_range_deg`` (low, high) allow, both crossing directions,
+    and the largest SLD contrast at the longest wavelength entering or leaving.
     """
-    to_sample_um = instrument.aperture_distance_m * 1e6 - distance_mm * 1e3
-    tilt = abs(math.radians(scene.sample.tilt_deg)) + math.radians(free_tilt_deg)
-    steepest = 0.5 * instrument.aperture_mm * 1e3 / to_sample_um + tilt
+    distance_um, depth_um = profile.distance_mm * 1e3, scene.sample.depth_mm * 1e3
+    to_sample_um = instrument.aperture_distance_m * 1e6 - distance_um
+    half_angle = 0.5 * instrument.aperture_mm * 1e3 / (to_sample_um - 0.5 * depth_um)
+    direction = np.array([profile.x_um[0], profile.x_um[-1]]) / to_sample_um
+    slope = np.tan(np.radians(tilt_range_deg))
+    offsets = np.linspace(direction.min() - slope.max(), direction.max() - slope.min(), _OFFSET_GRID)
+    offsets = np.concatenate([offsets, -offsets])[:, None]
     slds = [0.0] + [l.sld_e6_per_A2 for l in scene.sample.layers]
-    lambda_max = spectrum.support_A[1]
-    k_max = lambda_max**2 * (max(slds) - min(slds)) * 1e-6 / math.pi
-    outgoing = math.sqrt(steepest**2 + k_max)
-    lever_um = distance_mm * 1e3 + 0.5 * scene.sample.depth_mm * 1e3
-    return margin * (outgoing * lever_um + tilt * scene.sample.depth_mm * 1e3)
+    k_max = spectrum.support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi
+    lo, hi = (np.asarray(v) for v in landing_range(offsets, half_angle, np.array([k_max, -k_max])))
+    spread = 0.5 * (hi - lo) * (distance_um + 0.5 * depth_um)  # about the centre, at the longest lever
+    depth_drift = np.maximum(np.abs(lo), np.abs(hi)) * 0.5 * depth_um  # lever change along the depth
+    return margin * float(np.max(spread + depth_drift))
 
 
 def _ladder(n: int) -> int:
@@ -114,15 +123,20 @@ def _ladder(n: int) -> int:
     return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
 
 
-def build_model(scene: Scene, accuracy: float | None = None,
-                free: Collection[str] = ()) -> ForwardModel:
+def build_model(scene: Scene, accuracy: float | None = None, free: Collection[str] = (),
+                tilt_range_deg: tuple[float, float] | None = None) -> ForwardModel:
     """The forward model for every profile of ``scene``.
 
     accuracy: target RMS error in T (default: the scene's ``[model] accuracy``).
     free: parameter names (as in ``[fit] vary``) that may change, so that no
-    interface whose contrast could appear is pruned.
+    interface whose contrast could appear is pruned. tilt_range_deg: (low, high)
+    tilts the model must serve (default: the scene's tilt, or ±MAX_TILT_DEG when
+    ``sample.tilt_deg`` is free); kernel windows are sized for it.
     """
     accuracy = accuracy or scene.accuracy
+    if tilt_range_deg is None:
+        tilt = scene.sample.tilt_deg
+        tilt_range_deg = (-MAX_TILT_DEG, MAX_TILT_DEG) if "sample.tilt_deg" in free else (tilt, tilt)
     plans: dict[tuple, list[int]] = {}
     per_profile = []
     depth_nodes = {}
@@ -139,8 +153,7 @@ def build_model(scene: Scene, accuracy: float | None = None,
         n_pad = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / bin_um)
         n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
         margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
-        tilt_room = _FREE_TILT_ROOM_DEG if "sample.tilt_deg" in free else 0.0
-        window_um = _window_um(scene, instrument, spectrum, profile.distance_mm, margin, tilt_room)
+        window_um = _window_um(scene, instrument, spectrum, profile, margin, tilt_range_deg)
         window = math.ceil(window_um / bin_um) + 2
         window = min(_ladder(window), (n_edges - 1) // 2)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
