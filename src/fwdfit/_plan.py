@@ -27,7 +27,7 @@ _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
-MAX_TILT_DEG = 5.0  # default bound of a free tilt; the model is paraxial beyond ~3°
+MAX_TILT_DEG = 5.0  # default bound of a free tilt (the paraxial model loses accuracy beyond ~3°)
 
 
 def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float) -> tuple[int, int]:
