@@ -47,10 +47,9 @@ import optimistix as optx  # noqa: E402
 
 import fwdfit  # noqa: E402
 from _results import results_dir  # noqa: E402
+from _scenes import instruments_toml  # noqa: E402
 from fwdfit._scene import FitSpec  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-SPECTRUM = ROOT / "tests" / "data" / "mcstas" / "spectrum_boa.csv"
 NOISE = 0.01
 AL = fwdfit.constants_from_formula("Al", 2.70)
 TRUTH = {
@@ -83,25 +82,7 @@ sld_e6_per_A2 = {values['layers.Al.sld_e6_per_A2']!r}
 mu_per_m = {values['layers.Al.mu_per_m']!r}
 mu_per_m_per_A = {AL.mu_per_m_per_A!r}
 
-[instrument]
-aperture = "square"
-aperture_mm = 40.0
-aperture_distance_m = 7.5
-pixel_um = 2.4
-
-[instruments.icon]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.white]
-file = "{SPECTRUM}"
-
-[spectra.l46]
-wavelength_A = 4.6
-fwhm_rel = 0.15
-
+{instruments_toml({'l46': 4.6})}
 [[profiles]]
 name = "boa_d01.1mm"
 distance_mm = 1.1

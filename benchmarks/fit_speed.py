@@ -35,9 +35,8 @@ import warnings
 from pathlib import Path
 
 from _results import results_dir
+from _scenes import instruments_toml
 
-ROOT = Path(__file__).resolve().parents[1]
-SPECTRUM = ROOT / "tests" / "data" / "mcstas" / "spectrum_boa.csv"
 BOA_MM = (1.1, 4.8, 8.5, 12.2, 15.9, 19.6, 23.3, 27.0, 30.7, 34.4)
 ICON_A = (2.7, 3.2, 4.0, 4.6)
 NOISE = 0.01
@@ -74,11 +73,7 @@ def scene_text(case: dict, truth: bool, files: dict | None = None) -> str:
             lines += [f"thickness_um = {thickness * factor}", f"sld_e6_per_A2 = {sld * factor}",
                       f"mu_per_m = {mu * factor}"]
         seen[name] = True
-    lines += ["[instrument]", 'aperture = "square"', "aperture_mm = 40.0", "aperture_distance_m = 7.5",
-              f"pixel_um = {PIXEL_UM}", "[instruments.icon]", 'aperture = "circular"', "aperture_mm = 40.0",
-              "aperture_distance_m = 5.5", f"pixel_um = {PIXEL_UM}", "[spectra.white]", f'file = "{SPECTRUM}"']
-    for l in ICON_A:
-        lines += [f'[spectra."l{l}"]', f"wavelength_A = {l}", "fwhm_rel = 0.15"]
+    lines.append(instruments_toml({f"l{l}": l for l in ICON_A}, PIXEL_UM))
     for name, distance, spectrum in profile_list(case["profiles"]):
         lines += ["[[profiles]]", f'name = "{name}"', f"distance_mm = {distance}", f'spectrum = "{spectrum}"']
         if spectrum != "white":
