@@ -133,9 +133,9 @@ def multistart(request, tmp_path_factory):
 @pytest.mark.slow
 def test_random_starts_reach_the_best_chi2(multistart, request):
     if "oxide" in request.node.callspec.id:
-        # Known shortfall: 18 of 20 here; the two others (oxide 2 near 70-78 µm, oxide 1
-        # near 146-152 µm) end in a nearby minimum at delta chi2 ~ 55. With seed 3, 10 of
-        # 20; denser coarse-to-fine schedules reach 20 with this seed but 8 with seed 3.
+        # Known shortfall: 18 of 20 here; the two others end with the weak oxide 1 | oxide 2
+        # interface ~10 µm outwards (delta chi2 ~ 55). Other draws: 10, 13, 17 of 20
+        # (benchmarks/multistart.py; README "Random starts").
         request.applymarker(pytest.mark.xfail(strict=True, reason="oxide: 18 of 20 starts"))
     result, starts, _ = multistart
     assert jax.config.jax_enable_x64
