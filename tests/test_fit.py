@@ -18,7 +18,7 @@ tilt too (truth 0, start 0.05°). Pixel ranges are tight (they cover every pixel
 which keeps the fits fast. The reference's Monte Carlo noise is RMS 1-2e-3 per pixel
 (at most ~2 % in a few edge pixels at 1.1 mm), well below the added 1 %.
 
-Runtime on 2 CPU cores: tracing ~30 s, Al fit ~60 s, oxide fit ~75 s (marked slow;
+Runtime on 2 CPU cores: tracing ~30 s, Al fit ~60 s, oxide fit (4 starts) ~90 s (marked slow;
 ``-m "not slow"`` leaves ~2 minutes), CLI tests ~20 s (each fit includes its compilation).
 
 Known limits found with the first version of the solver, before the coarse-to-fine
@@ -354,21 +354,24 @@ def test_fit_rejects_bad_starts_option(small_case, tmp_path, capsys):
 # --------------------------------------------------------------------------- fits of exact synthetic data
 
 CASES = {
-    # sample: (make the case, truth, start)
-    "al": (make_al_case, AL_TRUTH, AL_START),
-    "oxide": (make_oxide_case, OXIDE_TRUTH, OXIDE_START),
+    # sample: (make the case, truth, start, starts): the oxide, like any sample with weak
+    # interfaces, is fitted from several starts as the README advises: from one start it can
+    # stop in a nearby minimum (on one CI machine at delta chi2 +1.2, with the weak oxide 1 |
+    # oxide 2 interface 0.45 µm off and its errors half the size they are at the best fit).
+    "al": (make_al_case, AL_TRUTH, AL_START, 1),
+    "oxide": (make_oxide_case, OXIDE_TRUTH, OXIDE_START, 4),
 }
 
 
 def _fit_case(tmp_path_factory, sample):
-    make, truth, start = CASES[sample]
+    make, truth, start, n_starts = CASES[sample]
     path, profiles = make(tmp_path_factory.mktemp(sample))
     scene = fwdfit.load_scene(path)
     for name, value in start.items():  # the scene holds the starting values, not the truth
         assert _scene_value(scene, name) == pytest.approx(value)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the fit's notes are in result.warnings
-        result = fwdfit.fit(scene)
+        result = fwdfit.fit(scene, n_starts=n_starts)
     print(f"\n{sample}: compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s\n"
           + _report(result, truth, profiles))
     return result, truth, profiles
