@@ -32,21 +32,23 @@ def _safe_sqrt(x):
 class AngularMass:
     """Rays through a point (x, z) per unit crossing length: int q(theta) * a da.
 
-    ``theta0``, ``half_width``: centre and half-width (rad) of the angular range
-    the aperture subtends from the crossing point; ``slope``: the interface's slope.
-    Arrays broadcast together.
+    The aperture (width ``aperture_um``) is seen from a crossing point at lateral
+    position ``position_um``, ``source_um`` downstream of it; ``slope`` is the
+    interface's slope. Arrays broadcast together.
     """
 
-    def __init__(self, aperture: str, theta0, half_width, slope):
+    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float):
         self._cdf, self._moment, _ = APERTURES[aperture]
-        self.offset = theta0 - slope  # grazing angle of the aperture centre
-        self.half_width = half_width
-        lo, hi = self.offset - half_width, self.offset + half_width
+        to_source = 1.0 / source_um
+        self.half_width = 0.5 * aperture_um * to_source  # rad, the angle it subtends / 2
+        self.inverse_half_width = (2.0 / aperture_um) * source_um
+        self.offset = position_um * to_source - slope  # grazing angle of the aperture centre
+        lo, hi = self.offset - self.half_width, self.offset + self.half_width
         self.a_min, self.a_max = jnp.maximum(lo, 0.0), jnp.maximum(hi, 0.0)
 
     def primitive(self, a):
         """int_{a_lo}^{a} q(slope + t) t dt for a already clipped to the positive range."""
-        v = (a - self.offset) / self.half_width
+        v = (a - self.offset) * self.inverse_half_width
         return self.offset * self._cdf(v) + self.half_width * self._moment(v)
 
     def between(self, a_low, a_high):
@@ -62,6 +64,11 @@ def straight_cumulative(mass: AngularMass, grazing_at_edge):
     return mass.between(mass.a_min, a)
 
 
+def _critical(mass: AngularMass, k):
+    """Grazing angle below which rays are totally reflected, clipped to the crossing range."""
+    return jnp.clip(_safe_sqrt(k) * (k > 0), mass.a_min, mass.a_max)
+
+
 def deflected_cumulative(mass: AngularMass, grazing_at_edge, k):
     """Refracted plus totally reflected crossing rays landing left of each edge.
 
@@ -69,13 +76,36 @@ def deflected_cumulative(mass: AngularMass, grazing_at_edge, k):
     at a2 = sqrt(a^2 - k) > 0, reflected ones at -a.
     Returns (refracted, reflected) cumulative masses.
     """
-    critical = jnp.clip(_safe_sqrt(k) * (k > 0), mass.a_min, mass.a_max)
+    critical = _critical(mass, k)
     positive = jnp.maximum(grazing_at_edge, 0.0)
     incoming = _safe_sqrt(positive * positive + k)
     refracted = mass.between(critical, jnp.clip(incoming, critical, mass.a_max))
     reflected_from = jnp.clip(-grazing_at_edge, mass.a_min, critical)
     reflected = mass.between(reflected_from, critical)
     return refracted, reflected
+
+
+# Kinks: the grazing angles at an edge at which a cumulative's clips switch. At a fixed
+# edge they move with the crossing depth, and the depth quadrature is split there.
+
+
+def straight_kinks(mass: AngularMass):
+    """Grazing angles at the edge where ``straight_cumulative`` has kinks: the fan's ends."""
+    return mass.a_min, mass.a_max
+
+
+def deflected_kinks(mass: AngularMass, k, right_of_interface):
+    """Grazing angles at the edge where ``deflected_cumulative`` has kinks.
+
+    Right of the interface's projection (grazing > 0) only the refracted rays land,
+    from the critical angle (where it is above sqrt(k)) and from the fan's end; left
+    of it only the reflected ones, from the fan's start and the critical angle.
+    """
+    critical = _critical(mass, k)
+    refracted = (_safe_sqrt(critical * critical - k) * (critical * critical > k),
+                 _safe_sqrt(mass.a_max * mass.a_max - k) * (mass.a_max * mass.a_max > k))
+    reflected = (-mass.a_min, -critical)
+    return tuple(jnp.where(right_of_interface, a, b) for a, b in zip(refracted, reflected))
 
 
 def landing_range(offset, half_width, k):

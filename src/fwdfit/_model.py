@@ -25,7 +25,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._aperture import APERTURES
-from ._kernel import AngularMass, deflected_cumulative, landing_range, straight_cumulative
+from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, landing_range,
+                      straight_cumulative, straight_kinks)
+
+_TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
 
 
 class ModelParams(eqx.Module):
@@ -141,39 +144,87 @@ def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um)
     return 1.0 + jump @ beyond
 
 
+def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup):
+    """Depth nodes and weights (..., 4 n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
+
+    The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
+    the cumulative (``_kernel``) has a kink in z where that angle meets one of the two
+    ``kinks(mass)`` angles, which depend on z only through the aperture's view.
+    Splitting there, and at the mid-plane z = 0 where the step assignment jumps,
+    keeps every piece smooth, so the kernel is smooth in the parameters rather than
+    piecewise linear. aim_um: (..., e) µm, one value per edge.
+    """
+    def depth_at(angle):  # where the ray to the edge grazes at ``angle``; z_hi if never
+        reaches = jnp.abs(angle) > _TINY_ANGLE
+        z = distance_um - aim_um / jnp.where(reaches, angle, 1.0)
+        return jnp.where(reaches, jnp.clip(z, z_lo, z_hi), z_hi)
+
+    # The kink angles from the mid-plane's view, then once more from the depths found:
+    # the view changes by ~z / L, so one step leaves the cuts ~1e-4 µm off the kinks.
+    first, second = (depth_at(angle) for angle in kinks(mass_at(jnp.zeros_like(aim_um[..., :1]))))
+    refined = kinks(mass_at(jnp.stack([first, second])))
+    first, second = depth_at(refined[0][0]), depth_at(refined[1][1])
+    first, second = jnp.minimum(first, second), jnp.maximum(first, second)
+    zero = jnp.zeros_like(first)
+    cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, zero),
+                      jnp.clip(zero, first, second), jnp.maximum(second, zero),
+                      jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, 0 <= z_hi
+    # Gauss-Legendre in the log of the lever (distance - z) on every piece: the grazing
+    # angle to an edge goes like 1 / lever, which is far from polynomial in z at short
+    # distances (the lever runs from distance - depth / 2 to distance + depth / 2).
+    log_lever = jnp.log(distance_um - cuts)
+    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., 4, 1, e), negative
+    unit_nodes, unit_weights = (np.asarray(v)[:, None] for v in (group.z_nodes, group.z_weights))
+    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., 4, n, e)
+    z, dz = distance_um - lever, -lever * length * unit_weights
+    shape = aim_um.shape[:-1] + (-1, aim_um.shape[-1])
+    return z.reshape(shape), dz.reshape(shape)
+
+
 def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, depth_um,
                      refracting: bool, edges_um):
     """Cumulative kernels (T, T_att), each (n_window_edges,), of one crossing direction.
 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
     at z = 0, its slope, its z-centre, mu before and after (n_lam,) and
-    k = 2 (delta_after - delta_before) (n_lam,).
+    k = 2 (delta_after - delta_before) (n_lam,). Each term is summed over depth
+    nodes aligned with its own kinks (``_kink_aligned_depths``).
     """
     boundary, slope, z_mid, mu_from, mu_to, k = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
-    unit_nodes, unit_weights = np.asarray(group.z_nodes), np.asarray(group.z_weights)
-    # Gauss-Legendre on [z_lo, 0] and [0, z_hi]: the step assignment jumps at z = 0.
-    z = jnp.concatenate([z_lo * (1.0 - unit_nodes), z_hi * unit_nodes])
-    dz = jnp.concatenate([-z_lo * unit_weights, z_hi * unit_weights])
-    lever = distance_um - z
-    source_to_z = group.aperture_distance_um - distance_um + z
-    mass = AngularMass(group.aperture, ((boundary + slope * z) / source_to_z)[:, None],
-                       (0.5 * group.aperture_um / source_to_z)[:, None], slope)
-    grazing = (edges_um[None, :] - (boundary + slope * distance_um)) / lever[:, None]
-    straight = straight_cumulative(mass, grazing)  # (z, e)
-    scale = dz * group.aperture_distance_um / source_to_z  # quadrature weight x magnification
+    L = group.aperture_distance_um
 
-    true_path = jnp.exp(-mu_from[:, None] * (z - z_lo) - mu_to[:, None] * (z_hi - z)) * scale
-    midplane_mu = jnp.where(z > 0, mu_from[:, None], mu_to[:, None])
-    step = (wavelength_weight @ jnp.exp(-midplane_mu * depth_um)) * scale  # (z,)
-    attenuation = (wavelength_weight @ true_path - step) @ straight
+    def mass_at(z):
+        source_to_z = L - distance_um + z
+        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um)
+
+    def nodes(kinks, aim):
+        """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
+        z, dz = _kink_aligned_depths(mass_at, kinks, aim, distance_um, z_lo, z_hi, group)
+        return z, dz * L / (L - distance_um + z), mass_at(z), aim[..., None, :] / (distance_um - z)
+
+    per_lam = (-1, 1, 1)  # per-wavelength values against (N, e) or (l, N, e) nodes
+    mu_from_l, mu_to_l = mu_from.reshape(per_lam), mu_to.reshape(per_lam)
+    aim = edges_um - (boundary + slope * distance_um)  # (e,) grazing angle x lever, µm
+
+    z, scale, mass, grazing = nodes(straight_kinks, aim)  # (N, e)
+    straight = straight_cumulative(mass, grazing)
+    true_path = jnp.tensordot(wavelength_weight, jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z)), 1)
+    step = jnp.where(z > 0, wavelength_weight @ jnp.exp(-mu_from * depth_um),
+                     wavelength_weight @ jnp.exp(-mu_to * depth_um))
+    stepped = jnp.sum(step * scale * straight, axis=-2)  # the step assignment of the crossing rays
+    attenuation = jnp.sum(true_path * scale * straight, axis=-2) - stepped
     if not refracting:
         return attenuation, attenuation
-    refracted, reflected = deflected_cumulative(mass, grazing[None], k[:, None, None])  # (l, z, e)
-    reflected_path = jnp.exp(-mu_from * depth_um)[:, None] * scale
-    deflected = (jnp.einsum("l,lz,lze->e", wavelength_weight, true_path, refracted)
-                 + jnp.einsum("l,lz,lze->e", wavelength_weight, reflected_path, reflected))
-    return deflected - step @ straight, attenuation
+    k_l = k[:, None]
+    aim_l = jnp.broadcast_to(aim, (k.shape[0],) + aim.shape)  # (l, e)
+    z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, k_l, aim_l > 0), aim_l)  # (l, N, e)
+    refracted, reflected = deflected_cumulative(mass, grazing, k_l[..., None])
+    refracted_path = jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z))
+    reflected_path = jnp.exp(-mu_from_l * depth_um)
+    deflected = wavelength_weight @ jnp.sum((refracted_path * refracted + reflected_path * reflected) * scale,
+                                            axis=-2)
+    return deflected - stepped, attenuation
 
 
 def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, shift_um,

@@ -27,22 +27,27 @@ _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
+import os
+_DEPTH_NODES_BASE = float(os.environ.get("B", 1.5))
+_DEPTH_NODES_PER_LOG = float(os.environ.get("C", 0.5))
 MAX_TILT_DEG = 5.0  # default bound of a free tilt (the paraxial model loses accuracy beyond ~3°)
 
 
 def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float) -> tuple[int, int]:
-    """(wavelength nodes, depth nodes per half-depth) for a target RMS error in T.
+    """(wavelength nodes, depth nodes per smooth piece) for a target RMS error in T.
 
-    Calibrated against the exact reference (benchmarks/speed_vs_error.py): errors
-    fall roughly like n^-2 in both sizes. Lines need fewer wavelength nodes than
-    white beams; short distances need more depth nodes (the refracted fan's
-    length changes by up to a factor (Delta + d/2) / (Delta - d/2) along the depth).
+    Calibrated against the converged model and the exact reference
+    (benchmarks/speed_vs_error.py): errors fall roughly like n^-2 in both sizes. Lines
+    need fewer wavelength nodes than white beams. The depth integral is split into
+    four pieces on which its integrand is smooth (``_model._kink_aligned_depths``) and
+    integrated in the log of the lever; short distances need more nodes (the lever
+    runs over a factor (Delta + d/2) / (Delta - d/2) along the depth).
     """
     factor = math.sqrt(1e-3 / accuracy)
     base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
     n_lambda = max(4, math.ceil(base_lambda * factor))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
-    n_z = max(2, math.ceil(factor * (3 + 2.5 * math.log(lever_ratio))))
+    n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
     return n_lambda, n_z
 
 
