@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
 from _results import results_dir  # noqa: E402
+from fwdfit._model import DEPTH_PIECES  # noqa: E402
 from fwdfit._paganin_scene import profile_tau_um2  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,7 +63,7 @@ def model_sweep(scene, accuracies, converged, shared, repeats):
         rows.append({"accuracy": accuracy, "time_ms": 1e3 * seconds, "rms_vs_converged": _rms(T, converged),
                      "rms_vs_shared_reference": _rms(T, shared),
                      "wavelength_nodes": int(model.groups[0].wavelength_A.shape[1]),
-                     "depth_nodes": [2 * len(g.z_nodes) for g in model.groups]})
+                     "depth_nodes": [DEPTH_PIECES * len(g.z_nodes) for g in model.groups]})
         print(f"  accuracy {accuracy:.0e}: {rows[-1]['time_ms']:.1f} ms, rms {rows[-1]['rms_vs_converged']:.2e}",
               flush=True)
     return rows

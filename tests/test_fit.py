@@ -354,24 +354,21 @@ def test_fit_rejects_bad_starts_option(small_case, tmp_path, capsys):
 # --------------------------------------------------------------------------- fits of exact synthetic data
 
 CASES = {
-    # sample: (make the case, truth, start, starts): the oxide, like any sample with weak
-    # interfaces, is fitted from several starts as the README advises: from one start it can
-    # stop in a nearby minimum (on one CI machine at delta chi2 +1.2, with the weak oxide 1 |
-    # oxide 2 interface 0.45 µm off and its errors half the size they are at the best fit).
-    "al": (make_al_case, AL_TRUTH, AL_START, 1),
-    "oxide": (make_oxide_case, OXIDE_TRUTH, OXIDE_START, 4),
+    # sample: (make the case, truth, start)
+    "al": (make_al_case, AL_TRUTH, AL_START),
+    "oxide": (make_oxide_case, OXIDE_TRUTH, OXIDE_START),
 }
 
 
 def _fit_case(tmp_path_factory, sample):
-    make, truth, start, n_starts = CASES[sample]
+    make, truth, start = CASES[sample]
     path, profiles = make(tmp_path_factory.mktemp(sample))
     scene = fwdfit.load_scene(path)
     for name, value in start.items():  # the scene holds the starting values, not the truth
         assert _scene_value(scene, name) == pytest.approx(value)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the fit's notes are in result.warnings
-        result = fwdfit.fit(scene, n_starts=n_starts)
+        result = fwdfit.fit(scene)
     print(f"\n{sample}: compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s\n"
           + _report(result, truth, profiles))
     return result, truth, profiles

@@ -132,12 +132,7 @@ def multistart(request, tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_random_starts_reach_the_best_chi2(multistart, request):
-    if "oxide" in request.node.callspec.id:
-        # Known shortfall: 18 of 20 here; the two others end with the weak oxide 1 | oxide 2
-        # interface ~10 µm outwards (delta chi2 ~ 55). Other draws: 10, 13, 17 of 20
-        # (benchmarks/multistart.py; README "Random starts").
-        request.applymarker(pytest.mark.xfail(strict=True, reason="oxide: 18 of 20 starts"))
+def test_random_starts_reach_the_best_chi2(multistart):
     result, starts, _ = multistart
     assert jax.config.jax_enable_x64
     reached = result.chi2_per_start - result.chi2_per_start.min() < REACHED_DELTA_CHI2

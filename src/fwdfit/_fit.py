@@ -155,15 +155,19 @@ def _values_of(free, u):
     return jnp.stack([p.from_unit(u[i]) for i, p in enumerate(free)])
 
 
-def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
+def _solve(objective: Objective, u0, tolerance, final, free, max_steps: int, verbose):
     """Solve from one start u0 (n_free,); returns (u, chi2, converged, steps) at the end.
 
     The solver works in w = u / scale, with scale the standard errors of u from the
-    Jacobian at the start, at most one typical step (u's unit) for parameters the
-    data hardly constrain, which then move no faster than the rest: the damping
-    treats all parameters alike, and the solver stops when the last step moved no
-    parameter by more than ``tolerance`` standard errors and no residual by more
-    than ``tolerance`` sigma. It returns u, not values, so that the next stage starts
+    Jacobian at the start, at most one typical step for parameters the data hardly
+    constrain, which then move no faster than the rest: the damping treats all
+    parameters alike, and the solver stops when the last step moved no parameter by
+    more than ``tolerance`` standard errors and no residual by more than
+    ``tolerance`` sigma. The typical step is u's unit in the coarse stages (uniform
+    moves towards the final basin) and one typical physical step in the ``final``
+    one (a boolean array): a value that converges onto a bound, deep in its
+    transform, then stops once its physical steps are small, rather than walking
+    u out towards infinity. It returns u, not values, so that the next stage starts
     exactly there (a value at its bound has no finite u to convert back to).
 
     The solver's Jacobians are forward differences (one model evaluation per free
@@ -181,7 +185,11 @@ def _solve(objective: Objective, u0, tolerance, free, max_steps: int, verbose):
 
     J0 = jacobian(u0, plain(u0), jnp.full_like(u0, _DIFFERENCE_STEP))
     curvature = J0.T @ J0 + _TINY_CURVATURE * jnp.eye(u0.shape[0], dtype=u0.dtype)
-    scale = jnp.minimum(jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature))), 1.0)
+    # One typical physical step, in u: 1 unless the value sits deep in a bound's transform.
+    _, value_per_u = jax.jvp(lambda u: _values_of(free, u), (u0,), (jnp.ones_like(u0),))
+    physical = jnp.asarray([p.step for p in free], u0.dtype) / jnp.maximum(jnp.abs(value_per_u), _TINY_CURVATURE)
+    typical = jnp.where(final, jnp.maximum(physical, 1.0), 1.0)
+    scale = jnp.minimum(jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature))), typical)
 
     # Gauss-Newton needs the Jacobian at every trial point: give it with the residuals.
     @jax.custom_jvp
@@ -248,9 +256,11 @@ class Fitter:
         verbose = _progress if progress and n_starts == 1 else False
         # The objective is an argument, not a closure: constants would be folded at compile time.
         runner = eqx.filter_jit(jax.vmap(
-            lambda o, u0, tol: _solve(o, u0, tol, free, max_steps, verbose), in_axes=(None, 0, None)))
+            lambda o, u0, tol, final: _solve(o, u0, tol, final, free, max_steps, verbose),
+            in_axes=(None, 0, None, None)))
         start_time = time.perf_counter()
-        lowered = runner.lower(self.objective, jnp.zeros((n_starts, len(free))), jnp.asarray(tolerance))
+        lowered = runner.lower(self.objective, jnp.zeros((n_starts, len(free))), jnp.asarray(tolerance),
+                               jnp.asarray(True))
         # XLA compiles the solver on a second thread while this one builds the exact
         # Jacobian that gives the errors at the optimum.
         with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
@@ -316,7 +326,7 @@ class Fitter:
                       f"by a {smoothing_um:g} µm Gaussian", flush=True)
             tolerance = self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE)
             u, chi2, success, steps = self._compiled(objective.with_smoothing(smoothing_um / self.pixel_um),
-                                                     u, jnp.asarray(tolerance))
+                                                     u, jnp.asarray(tolerance), jnp.asarray(final))
             total_steps += np.asarray(steps)
         values = jax.vmap(lambda x: _values_of(self.free, x))(u)
         values, chi2, success = jax.block_until_ready((values, chi2, success))

@@ -5,7 +5,9 @@ within ``depth * |a|`` of it (a: grazing angle) cross it. For one interface and
 one crossing direction this module integrates those rays exactly over angle
 (the aperture's angular distribution has closed-form antiderivatives) and
 returns, at each detector edge E, the intensity (µm of open beam) that lands left
-of E. The crossing depth z and the wavelength are summed by quadrature outside.
+of E. The crossing depth z and the wavelength are summed by quadrature outside; the
+``*_kinks`` functions give the grazing angles at which each cumulative kinks as a
+function of z, where that quadrature is split.
 
 Frame: the "local" frame in which rays cross from medium 1 (left) into medium 2
 (right), i.e. grazing angle a > 0; the other direction is the mirror image.

@@ -9,7 +9,8 @@ T = T_step + sum over interfaces and crossing directions of a deflection kernel.
   it inside the sample, the step assignment by their true path: straight (T_att)
   or refracted / totally reflected (T). Interfaces act independently: exact when
   every layer is thicker than the sideways drift depth * |angle| (~20 µm at 2 mm
-  depth), an approximation for thinner layers.
+  depth), an approximation for thinner layers. Its depth integral is split, per
+  detector edge, where the integrand kinks, so the model is smooth in its parameters.
 - Detector blur (Gaussian) and pixel integration close the chain.
 
 Internal units: µm, rad, Å; mu in 1/µm. Use float64 (``jax_enable_x64``) for
@@ -29,6 +30,7 @@ from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, landin
                       straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
+DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane
 
 
 class ModelParams(eqx.Module):
@@ -79,7 +81,7 @@ class ProfileGroup(eqx.Module):
     n_sub: int = eqx.field(static=True)
     n_pad: int = eqx.field(static=True)
     window: int = eqx.field(static=True)  # kernel window half-width, sub-bins
-    z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1]
+    z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
     wavelength_A: Float[Array, "group lam"]
@@ -145,7 +147,7 @@ def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um)
 
 
 def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup):
-    """Depth nodes and weights (..., 4 n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
+    """Depth nodes and weights (..., DEPTH_PIECES n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
 
     The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
     the cumulative (``_kernel``) has a kink in z where that angle meets one of the two
@@ -173,7 +175,7 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     # angle to an edge goes like 1 / lever, which is far from polynomial in z at short
     # distances (the lever runs from distance - depth / 2 to distance + depth / 2).
     log_lever = jnp.log(distance_um - cuts)
-    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., 4, 1, e), negative
+    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., DEPTH_PIECES, 1, e), negative
     unit_nodes, unit_weights = (np.asarray(v)[:, None] for v in (group.z_nodes, group.z_weights))
     lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., 4, n, e)
     z, dz = distance_um - lever, -lever * length * unit_weights

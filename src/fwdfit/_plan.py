@@ -27,9 +27,9 @@ _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
-import os
-_DEPTH_NODES_BASE = float(os.environ.get("B", 1.5))
-_DEPTH_NODES_PER_LOG = float(os.environ.get("C", 0.5))
+# Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
+_DEPTH_NODES_BASE = 1.5
+_DEPTH_NODES_PER_LOG = 0.5
 MAX_TILT_DEG = 5.0  # default bound of a free tilt (the paraxial model loses accuracy beyond ~3°)
 
 
@@ -39,8 +39,8 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     Calibrated against the converged model and the exact reference
     (benchmarks/speed_vs_error.py): errors fall roughly like n^-2 in both sizes. Lines
     need fewer wavelength nodes than white beams. The depth integral is split into
-    four pieces on which its integrand is smooth (``_model._kink_aligned_depths``) and
-    integrated in the log of the lever; short distances need more nodes (the lever
+    ``_model.DEPTH_PIECES`` pieces on which its integrand is smooth (``_model._kink_aligned_depths``)
+    and integrated in the log of the lever; short distances need more nodes (the lever
     runs over a factor (Delta + d/2) / (Delta - d/2) along the depth).
     """
     factor = math.sqrt(1e-3 / accuracy)
