@@ -9,7 +9,7 @@ and must match, per profile:
   0.0001-0.0007 in T and below 0.0004 in T_att, see benchmarks/reference_table.md);
 - the gain-peak height and the loss-dip depth at each edge to 5 % (definitions in
   ``helpers.edge_heights``: extrema after a running mean over an eighth of the
-  penumbra, loss measured from the reference's T_att; measured worst 4.4 %).
+  penumbra, loss measured from the reference's T_att; measured worst 3.4 %).
 
 Every scene's model is built and run once per module (about 50 s for all eight
 scenes, 43 profiles, mostly compilation).
