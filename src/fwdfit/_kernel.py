@@ -35,8 +35,8 @@ class AngularMass:
     """Rays through a point (x, z) per unit crossing length: int q(theta) * a da.
 
     The aperture (width ``aperture_um``) is seen from a crossing point at lateral
-    position ``position_um``, ``source_um`` downstream of it; ``slope`` is the
-    interface's slope. Arrays broadcast together.
+    position ``position_um``, ``source_um`` downstream of the aperture; ``slope`` is
+    the interface's slope. Arrays broadcast together.
     """
 
     def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float):
