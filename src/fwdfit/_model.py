@@ -177,7 +177,7 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     log_lever = jnp.log(distance_um - cuts)
     length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., DEPTH_PIECES, 1, e), negative
     unit_nodes, unit_weights = (np.asarray(v)[:, None] for v in (group.z_nodes, group.z_weights))
-    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., 4, n, e)
+    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., DEPTH_PIECES, n, e)
     z, dz = distance_um - lever, -lever * length * unit_weights
     shape = aim_um.shape[:-1] + (-1, aim_um.shape[-1])
     return z.reshape(shape), dz.reshape(shape)
@@ -209,22 +209,23 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     mu_from_l, mu_to_l = mu_from.reshape(per_lam), mu_to.reshape(per_lam)
     aim = edges_um - (boundary + slope * distance_um)  # (e,) grazing angle x lever, µm
 
+    def true_path(z):  # attenuation of a ray crossing at depth z: medium 1, then medium 2
+        return jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z))
+
     z, scale, mass, grazing = nodes(straight_kinks, aim)  # (N, e)
     straight = straight_cumulative(mass, grazing)
-    true_path = jnp.tensordot(wavelength_weight, jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z)), 1)
     step = jnp.where(z > 0, wavelength_weight @ jnp.exp(-mu_from * depth_um),
                      wavelength_weight @ jnp.exp(-mu_to * depth_um))
     stepped = jnp.sum(step * scale * straight, axis=-2)  # the step assignment of the crossing rays
-    attenuation = jnp.sum(true_path * scale * straight, axis=-2) - stepped
+    attenuation = jnp.sum(jnp.tensordot(wavelength_weight, true_path(z), 1) * scale * straight, axis=-2) - stepped
     if not refracting:
         return attenuation, attenuation
     k_l = k[:, None]
     aim_l = jnp.broadcast_to(aim, (k.shape[0],) + aim.shape)  # (l, e)
     z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, k_l, aim_l > 0), aim_l)  # (l, N, e)
     refracted, reflected = deflected_cumulative(mass, grazing, k_l[..., None])
-    refracted_path = jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z))
     reflected_path = jnp.exp(-mu_from_l * depth_um)
-    deflected = wavelength_weight @ jnp.sum((refracted_path * refracted + reflected_path * reflected) * scale,
+    deflected = wavelength_weight @ jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale,
                                             axis=-2)
     return deflected - stepped, attenuation
 
