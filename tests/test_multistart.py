@@ -1,7 +1,7 @@
 """Fits from 20 random starting points inside the bounds reach the best chi-square.
 
-The stability half of the fitter's checks: one ``fwdfit.Fitter`` with 20 starts,
-batched with vmap, per sample; every start is drawn uniformly inside the bounds
+The stability half of the fitter's checks: one ``fwdfit.Fitter`` with 20 starts
+per sample; every start is drawn uniformly inside the bounds
 given in the scene (wide ones: thickness ±10 %, SLD and mu ±25-40 %, tilt 0 to
 0.5°, centre ±20 µm). At least 19 of the 20 must end within Δχ² < 0.5 of the best
 (well below the 1-sigma contour, Δχ² = 1), and the best must be the truth's
@@ -15,7 +15,7 @@ question here is the solver's, so the model that made the data is the one fitted
   oxide 2, same_as ties; outer faces at ±740 µm), BOA 12.2 mm, ±960 µm, tilt 0
   fixed; nine free values.
 
-Runtime on 2 CPU cores: about 1.5 minutes for the Al block, 3 for the oxide (marked slow).
+Runtime on 2 CPU cores: about 1 minute for the Al block, 2 for the oxide (marked slow).
 """
 
 from __future__ import annotations

@@ -233,8 +233,9 @@ class Fitter:
     radiographs of one sample.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
-    RMS error in T. n_starts: > 1 runs that many starting points batched with vmap
-    (the scene's values and random ones inside the bounds) and keeps the best.
+    RMS error in T. n_starts: > 1 runs that many starting points (the scene's values
+    and random ones inside the bounds; one after another on a CPU, batched with vmap
+    on an accelerator) and keeps the best.
     tolerance: stop when a step moves no parameter by more than this many standard
     errors. progress: print step and chi-square while fitting. Runs in float64.
     """
@@ -261,9 +262,12 @@ class Fitter:
         free = self.free
         verbose = _progress if progress and n_starts == 1 else False
         # The objective is an argument, not a closure: constants would be folded at compile time.
-        runner = eqx.filter_jit(jax.vmap(
-            lambda o, u0, tol, final: _solve(o, u0, tol, final, free, max_steps, verbose),
-            in_axes=(None, 0, None, None)))
+        # The starts run one after another on a CPU, where a batch gains no parallelism and
+        # every start would wait for the slowest; on an accelerator they run batched (vmap).
+        batch = 1 if jax.default_backend() == "cpu" else n_starts
+        runner = eqx.filter_jit(
+            lambda o, u0s, tol, final: jax.lax.map(
+                lambda u0: _solve(o, u0, tol, final, free, max_steps, verbose), u0s, batch_size=batch))
         start_time = time.perf_counter()
         lowered = runner.lower(self.objective, jnp.zeros((n_starts, len(free))), jnp.asarray(tolerance),
                                jnp.asarray(True))
@@ -352,9 +356,9 @@ def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = 
     """Fit the free parameters of a scene to all of its measured profiles at once.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
-    RMS error in T. n_starts: > 1 runs that many starting points batched with vmap
-    (the scene's values and random ones inside the bounds, drawn with ``seed``) and
-    keeps the best. tolerance: stop when a step moves no parameter by more than
+    RMS error in T. n_starts: > 1 runs that many starting points (the scene's values
+    and random ones inside the bounds, drawn with ``seed``; see ``Fitter``) and keeps
+    the best. tolerance: stop when a step moves no parameter by more than
     this many standard errors. progress: print step and chi-square while fitting.
     Runs in float64. To refit new data without recompiling, use ``Fitter``.
     """
