@@ -30,6 +30,7 @@ _NOISE_FROM_NEIGHBOURS = 1.0 / (0.6745 * np.sqrt(2.0))  # MAD of differences -> 
 _SMOOTHING_SCHEDULE_UM = (25.0, 8.0, 3.0, 0.0)  # Gaussian sigma of each stage, coarse to fine
 _COARSE_TOLERANCE = 0.3  # standard errors: the coarse stages only need to reach the final basin
 _TINY_CURVATURE = 1e-12
+_UNPIN_FRACTION = 0.1  # coarse stages restart a value on a bound this fraction of the box inside
 _DIFFERENCE_STEP = 1e-3  # forward-difference step, in solver units (typical steps for the first Jacobian)
 
 
@@ -335,6 +336,10 @@ class Fitter:
                 print(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)}: model and data smoothed "
                       f"by a {smoothing_um:g} µm Gaussian", flush=True)
             tolerance = self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE)
+            if 0 < stage and not final:
+                # A coarse stage that ended on a bound had too little information to hold it
+                # there (the smoothing hides weak interfaces): the finer one starts inside.
+                u = jnp.stack([p.inside(u[:, i], _UNPIN_FRACTION) for i, p in enumerate(self.free)], axis=1)
             u, chi2, success, steps = self._compiled(objective.with_smoothing(smoothing_um / self.pixel_um),
                                                      u, jnp.asarray(tolerance), jnp.asarray(final))
             total_steps += np.asarray(steps)

@@ -85,6 +85,14 @@ class FreeParameter:
             return self.high - self.step * jax.nn.softplus(u)
         return self.value + self.step * u
 
+    def inside(self, u, fraction: float):
+        """u moved, if needed, so that its value lies at least ``fraction`` of the box from
+        either bound (two bounds only; unchanged otherwise)."""
+        if not (math.isfinite(self.low) and math.isfinite(self.high)):
+            return u
+        limit = self._width * math.log((1.0 - fraction) / fraction)
+        return jnp.clip(u, -limit, limit)
+
     @property
     def _width(self) -> float:
         """Sigmoid scale giving slope ``step`` per unit at the middle of the box."""
