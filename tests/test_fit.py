@@ -530,3 +530,18 @@ def test_fit_cli_writes_results(small_case, tmp_path, capsys):
     assert fitted.fit.vary == tuple(SMALL_START)
     assert fitted.fit.bounds == {"layers.Al.thickness_um": (900.0, 1100.0)}
     np.testing.assert_allclose(fitted.profiles[0].T, rows[:, 1], rtol=1e-8)  # same data file
+
+
+def test_values_on_a_bound_restart_inside():
+    """Between coarse stages a value on a bound restarts 10 % of the box inside; values
+    already inside, and one-sided or free parameters, are left as they are."""
+    from fwdfit._parameters import FreeParameter
+
+    box = FreeParameter("layers.oxide2.thickness_um", 80.0, 70.0, 90.0, 1.0, ("thickness_um", (0,)))
+    pinned, inner = box.to_unit(89.999), box.to_unit(75.0)
+    assert float(box.from_unit(box.inside(pinned, 0.1))) == pytest.approx(88.0, abs=1e-9)
+    assert float(box.from_unit(box.to_unit(70.001))) == pytest.approx(70.001, abs=1e-9)
+    assert float(box.from_unit(box.inside(box.to_unit(70.001), 0.1))) == pytest.approx(72.0, abs=1e-9)
+    assert float(box.inside(inner, 0.1)) == float(inner)
+    one_sided = FreeParameter("layers.Al.mu_per_m", 9.0, 0.0, math.inf, 0.1, ("mu_per_m", (0,)))
+    assert float(one_sided.inside(one_sided.to_unit(1e-6), 0.1)) == float(one_sided.to_unit(1e-6))
