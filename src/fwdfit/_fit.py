@@ -30,6 +30,7 @@ _NOISE_FROM_NEIGHBOURS = 1.0 / (0.6745 * np.sqrt(2.0))  # MAD of differences -> 
 _SMOOTHING_SCHEDULE_UM = (25.0, 8.0, 3.0, 0.0)  # Gaussian sigma of each stage, coarse to fine
 _COARSE_TOLERANCE = 0.3  # standard errors: the coarse stages only need to reach the final basin
 _TINY_CURVATURE = 1e-12
+_TINY_SLOPE = 1e-12  # d value / d u below this counts as zero (a value deep in a bound's transform)
 _UNPIN_FRACTION = 0.1  # coarse stages restart a value on a bound this fraction of the box inside
 _DIFFERENCE_STEP = 1e-3  # forward-difference step, in solver units (typical steps for the first Jacobian)
 
@@ -194,7 +195,7 @@ def _solve(objective: Objective, u0, tolerance, final, free, max_steps: int, ver
     curvature = J0.T @ J0 + _TINY_CURVATURE * jnp.eye(u0.shape[0], dtype=u0.dtype)
     # One typical physical step, in u: 1 unless the value sits deep in a bound's transform.
     _, value_per_u = jax.jvp(lambda u: _values_of(free, u), (u0,), (jnp.ones_like(u0),))
-    physical = jnp.asarray([p.step for p in free], u0.dtype) / jnp.maximum(jnp.abs(value_per_u), _TINY_CURVATURE)
+    physical = jnp.asarray([p.step for p in free], u0.dtype) / jnp.maximum(jnp.abs(value_per_u), _TINY_SLOPE)
     typical = jnp.where(final, jnp.maximum(physical, 1.0), 1.0)
     scale = jnp.minimum(jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature))), typical)
 
