@@ -18,8 +18,8 @@ tilt too (truth 0, start 0.05°). Pixel ranges are tight (they cover every pixel
 which keeps the fits fast. The reference's Monte Carlo noise is RMS 1-2e-3 per pixel
 (at most ~2 % in a few edge pixels at 1.1 mm), well below the added 1 %.
 
-Runtime on 2 CPU cores: tracing ~30 s, Al fit ~60 s, oxide fit ~95 s (marked slow;
-``-m "not slow"`` leaves ~2 minutes), CLI tests ~20 s (each fit includes its compilation).
+Runtime on 2 CPU cores: tracing ~30 s, Al fit ~50 s, oxide fit ~65 s (marked slow;
+``-m "not slow"`` leaves ~2 minutes), CLI tests ~15 s (each fit includes its compilation).
 
 Known limits found with the first version of the solver, before the coarse-to-fine
 stages (not asserted here): from tilt 0.142° with thickness 1200 µm (the tilt 20 % +
