@@ -273,11 +273,12 @@ class Fitter:
         start_time = time.perf_counter()
         lowered = runner.lower(self.objective, jnp.zeros((n_starts, len(free))), jnp.asarray(tolerance),
                                jnp.asarray(True))
-        # XLA compiles the solver on a second thread while this one builds the exact
-        # Jacobian that gives the errors at the optimum.
+        # XLA compiles the solver on a second thread while this one compiles the exact
+        # derivative that gives the errors at the optimum (one call compiles it).
+        values = jnp.asarray([p.value for p in free])
         with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
             solver = pool.submit(lowered.compile)
-            jax.block_until_ready(_linearise(self.objective, jnp.asarray([p.value for p in free])))
+            jax.block_until_ready(_directional(self.objective, values, jnp.zeros_like(values)))
             self._compiled = solver.result()
         self.compile_time_s = time.perf_counter() - start_time
 
@@ -393,7 +394,7 @@ def _linearise(objective: Objective, values):
     compiles in about half the time, and its calls cost little next to a fit.
     """
     columns = [_directional(objective, values, tangent) for tangent in jnp.eye(values.shape[0], dtype=values.dtype)]
-    jacobian, att_jacobian = (jnp.stack([c[0][i] for c in columns], axis=1) for i in range(2))
+    jacobian, att_jacobian = (jnp.stack(c, axis=1) for c in zip(*(derivatives for derivatives, _ in columns)))
     return jacobian, att_jacobian, columns[0][1]
 
 
