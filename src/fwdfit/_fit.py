@@ -1,38 +1,49 @@
 """Joint least-squares fit of one sample model to every profile of a scene.
 
-The objective is the vector of weighted residuals (norm * T + background - T_meas)
-/ sigma over all profiles, a pure function of the free parameters' unconstrained
-coordinates; optimistix' Levenberg-Marquardt minimises it. Uncertainties come from
-the exact Jacobian at the optimum (in physical units, so the bound transforms do
-not distort them) and are propagated to a 1-sigma band on T_att.
+The strategy, each step in its own module:
+
+1. starting values read off the data (``_starts``: edges, plateaus, open beam),
+   whatever the scene says; a free parameter may have no start value at all;
+2. a global scan of what the edges pin only weakly, tilt and SLDs (``_search``);
+3. Levenberg-Marquardt from the best few points, coarse to fine: model and data
+   smoothed alike first, then at full resolution (``_least_squares``);
+4. uncertainties from the Jacobian at the optimum (``_uncertainty``);
+5. the quality gate: does the data accept the fit, and if not, where not (``_quality``).
+
+Every model evaluation goes through one compiled program (``_predict``), so a fit
+compiles the model once; the residuals (norm * T + background - T_meas) / sigma
+are formed around it in NumPy.
 """
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import math
 import time
 import warnings
 
-import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ._errors import FwdfitError
+from ._least_squares import levenberg_marquardt
 from ._parameters import FreeParameter, assembler, free_parameters
 from ._plan import build_model
+from ._predict import Predictor
+from ._quality import Quality, assess, edge_half_width_um
 from ._scene import Scene, load_scene
+from ._search import SLD_FACTOR_MAX, SLD_VALUE_MAX, global_search
+from ._starts import estimate, noise_sigma
+from ._uncertainty import band, central_differences, covariance, errors_and_correlation
 
-_NOISE_FROM_NEIGHBOURS = 1.0 / (0.6745 * np.sqrt(2.0))  # MAD of differences -> sigma
-_SMOOTHING_SCHEDULE_UM = (25.0, 8.0, 3.0, 0.0)  # Gaussian sigma of each stage, coarse to fine
-_COARSE_TOLERANCE = 0.3  # standard errors: the coarse stages only need to reach the final basin
-_TINY_CURVATURE = 1e-12
+_SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
+_SMOOTHING_SCHEDULE_UM = (0.0,)  # the local solver's stages, coarse to fine
+_COARSE_TOLERANCE = 0.3  # standard errors: the coarse stage only needs to reach the final basin
+_CANDIDATES = 3  # starting points handed from the global scan to the local solver
+_KEEP_DELTA_CHI2 = 25.0  # after the coarse stage, starts this far above the best are dropped
+_UNPIN_FRACTION = 0.1  # a coarse stage that ended on a bound restarts this fraction of the box inside
 _TINY_SLOPE = 1e-12  # d value / d u below this counts as zero (a value deep in a bound's transform)
-_UNPIN_FRACTION = 0.1  # coarse stages restart a value on a bound this fraction of the box inside
-_DIFFERENCE_STEP = 1e-3  # forward-difference step, in solver units (typical steps for the first Jacobian)
+_ERROR_STEP = 0.1  # central-difference step for the final Jacobian, in standard errors
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,7 +67,11 @@ class FittedProfile:
 
 @dataclasses.dataclass(frozen=True)
 class FitResult:
-    """Fitted values with 1-sigma errors and correlations, in the units of the scene keys."""
+    """Fitted values with 1-sigma errors and correlations, in the units of the scene keys.
+
+    ``converged``: the local solver met its tolerance; ``quality``: whether the data
+    accept the fit (``quality.passed``) and, if not, where they reject it.
+    """
 
     names: tuple[str, ...]
     values: np.ndarray
@@ -68,16 +83,24 @@ class FitResult:
     message: str
     n_steps: int
     compile_time_s: float
-    wall_time_s: float
+    wall_time_s: float  # the fit itself, after compilation
     profiles: tuple[FittedProfile, ...]
     warnings: tuple[str, ...]
     sigma_from_data: bool
     scene: Scene
-    chi2_per_start: np.ndarray  # (n_starts,) final chi-square from every start (inf if it diverged)
+    chi2_per_start: np.ndarray  # (n_starts,) final chi-square from every local start
+    quality: Quality
+    start: dict  # free name -> starting value read off the data (NaN where none)
+    n_evaluations: int  # model evaluations of the fit (scan, solver, errors)
 
     @property
     def chi2_reduced(self) -> float:
         return self.chi2 / max(self.dof, 1)
+
+    @property
+    def accepted(self) -> bool:
+        """Converged, and accepted by the data."""
+        return self.converged and self.quality.passed
 
     def __getitem__(self, name: str) -> tuple[float, float]:
         """(value, error) of a parameter by its name."""
@@ -93,12 +116,6 @@ class FitResult:
         return "\n".join(rows)
 
 
-def estimate_sigma(T: np.ndarray) -> float:
-    """Noise of a profile from the scatter of neighbouring-pixel differences (robust)."""
-    differences = np.diff(T)
-    return float(np.median(np.abs(differences - np.median(differences))) * _NOISE_FROM_NEIGHBOURS)
-
-
 def _data(scene: Scene):
     missing = [p.name for p in scene.profiles if p.T is None]
     if missing:
@@ -108,7 +125,7 @@ def _data(scene: Scene):
         if p.T_err is not None:
             sigmas.append(p.T_err)
         else:
-            sigma = estimate_sigma(p.T)
+            sigma = noise_sigma(p.T)
             if not sigma > 0:
                 raise FwdfitError(f"{scene.path}: profile {p.name!r}: no T_err and no noise to estimate it from")
             sigmas.append(np.full_like(p.T, sigma))
@@ -116,130 +133,71 @@ def _data(scene: Scene):
     return [p.T for p in scene.profiles], sigmas, from_data
 
 
-class Objective(eqx.Module):
-    """Weighted residuals over all profiles as a function of the free physical values.
+class _Smoother:
+    """Gaussian smoothing of concatenated profiles (rows, N), each profile on its own, ends padded."""
 
-    ``smoothing`` (odd length) is convolved with model and data before they are
-    compared: a wide Gaussian for the coarse stage of a fit, a unit impulse after.
-    """
+    def __init__(self, lengths: list[int], pixel_um: list[float], sigma_um: float):
+        self.slices = np.cumsum([0] + list(lengths))
+        self.kernels = []
+        for pixel in pixel_um:
+            half = math.ceil(3 * sigma_um / pixel)
+            offsets = np.arange(-half, half + 1)
+            kernel = np.exp(-0.5 * (offsets * pixel / sigma_um) ** 2) if sigma_um > 0 else (offsets == 0) * 1.0
+            self.kernels.append(kernel / kernel.sum())
 
-    model: eqx.Module
-    assemble: eqx.Module
-    T: tuple
-    sigma: tuple
-    smoothing: jax.Array
-
-    def with_smoothing(self, width_px: float) -> "Objective":
-        half = (self.smoothing.shape[0] - 1) // 2
-        offsets = np.arange(-half, half + 1)
-        kernel = (offsets == 0).astype(float) if width_px == 0 else np.exp(-0.5 * (offsets / width_px) ** 2)
-        return eqx.tree_at(lambda o: o.smoothing, self, jnp.asarray(kernel / kernel.sum()))
-
-    def _smooth(self, values):
-        half = (self.smoothing.shape[0] - 1) // 2
-        return jnp.convolve(jnp.pad(values, half, mode="edge"), self.smoothing, mode="valid")
-
-    def predict(self, values):
-        """(T_model, T_att) per profile, with each profile's norm and background applied."""
-        params, norm, background = self.assemble(values)
-        T, T_att = self.model(params)
-        return ([n * t + b for t, n, b in zip(T, norm, background)],
-                [n * t + b for t, n, b in zip(T_att, norm, background)])
-
-    def residuals(self, values):
-        T_model, _ = self.predict(values)
-        return jnp.concatenate([(self._smooth(m) - self._smooth(t)) / s
-                                for m, t, s in zip(T_model, self.T, self.sigma)])
+    def __call__(self, rows: np.ndarray) -> np.ndarray:
+        out = np.empty_like(rows)
+        for (a, b), kernel in zip(zip(self.slices[:-1], self.slices[1:]), self.kernels):
+            half = len(kernel) // 2
+            if half == 0:
+                out[:, a:b] = rows[:, a:b]
+                continue
+            padded = np.pad(rows[:, a:b], ((0, 0), (half, half)), mode="edge")
+            out[:, a:b] = sum(w * padded[:, k:k + b - a] for k, w in enumerate(kernel))
+        return out
 
 
-def _values_of(free, u):
-    """Physical values (n_free,) from unconstrained coordinates u (n_free,)."""
-    return jnp.stack([p.from_unit(u[i]) for i, p in enumerate(free)])
+def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
+    """The scene the model's static plan is built from: free SLDs at the largest value the
+    global scan tries (kernel windows are sized for it), missing start values filled."""
+    layers = list(scene.sample.layers)
+    for p in free:
+        field, index = p.target
+        for i in index if field in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A") else ():
+            value = getattr(layers[i], field)
+            if field == "sld_e6_per_A2":
+                value = SLD_VALUE_MAX if math.isnan(value) else value * SLD_FACTOR_MAX
+            elif math.isnan(value):
+                value = 1.0
+            layers[i] = dataclasses.replace(layers[i], **{field: value})
+    sample = scene.sample
+    if math.isnan(sample.tilt_deg):
+        sample = dataclasses.replace(sample, tilt_deg=0.0)
+    if math.isnan(sample.centre_um):
+        sample = dataclasses.replace(sample, centre_um=0.0)
+    return dataclasses.replace(scene, sample=dataclasses.replace(sample, layers=tuple(layers)))
 
 
-def _solve(objective: Objective, u0, tolerance, final, free, max_steps: int, verbose):
-    """Solve from one start u0 (n_free,); returns (u, chi2, converged, steps) at the end.
-
-    The solver works in w = u / scale, with scale the standard errors of u from the
-    Jacobian at the start, at most one typical step for parameters the data hardly
-    constrain, which then move no faster than the rest: the damping treats all
-    parameters alike, and the solver stops when the last step moved no parameter by
-    more than ``tolerance`` standard errors and no residual by more than
-    ``tolerance`` sigma. The typical step is u's unit in the coarse stages (uniform
-    moves towards the final basin) and one typical physical step in the ``final``
-    one (a boolean array): a value that converges onto a bound, deep in its
-    transform, then stops once its physical steps are small, rather than walking
-    u out towards infinity. It returns u, not values, so that the next stage starts
-    exactly there (a value at its bound has no finite u to convert back to).
-
-    The solver's Jacobians are forward differences (one model evaluation per free
-    parameter): on the CPU they cost a fifth of the forward-mode Jacobian, whose
-    tangents break XLA's fusion of the kernels; the errors use the exact one.
-    """
-
-    def plain(u):
-        return objective.residuals(_values_of(free, u))
-
-    def evaluate(u, step):
-        """Residuals at u and their forward-difference Jacobian (n_residual, n_free).
-
-        One mapped evaluation serves both (the first row is u itself), so the model
-        is compiled once.
-        """
-        shifts = jnp.concatenate([jnp.zeros((1, u.shape[0]), u.dtype), jnp.diag(step)])
-        shifted = jax.lax.map(lambda s: plain(u + s), shifts)
-        r = shifted[0]
-        return r, ((shifted[1:] - r[None, :]) / step[:, None]).T
-
-    _, J0 = evaluate(u0, jnp.full_like(u0, _DIFFERENCE_STEP))
-    curvature = J0.T @ J0 + _TINY_CURVATURE * jnp.eye(u0.shape[0], dtype=u0.dtype)
-    # One typical physical step, in u: 1 unless the value sits deep in a bound's transform.
-    _, value_per_u = jax.jvp(lambda u: _values_of(free, u), (u0,), (jnp.ones_like(u0),))
-    physical = jnp.asarray([p.step for p in free], u0.dtype) / jnp.maximum(jnp.abs(value_per_u), _TINY_SLOPE)
-    typical = jnp.where(final, jnp.maximum(physical, 1.0), 1.0)
-    scale = jnp.minimum(jnp.sqrt(jnp.diag(jnp.linalg.inv(curvature))), typical)
-
-    # Gauss-Newton needs the Jacobian at every trial point: give it with the residuals.
-    @jax.custom_jvp
-    def residuals(w):
-        return plain(w * scale)
-
-    @residuals.defjvp
-    def _residuals_jvp(primals, tangents):
-        r, J = evaluate(primals[0] * scale, _DIFFERENCE_STEP * scale)
-        return r, (J * scale) @ tangents[0]
-
-    solver = optx.LevenbergMarquardt(rtol=0.0, atol=tolerance, verbose=verbose)
-    solution = optx.least_squares(lambda w, _: residuals(w), solver, u0 / scale,
-                                  max_steps=max_steps, throw=False)
-    u = solution.value * scale
-    # The residuals at the solution, kept in the solver's state (no further model evaluation).
-    chi2 = jnp.sum(solution.state.f_info.residual ** 2)
-    return u, chi2, solution.result == optx.RESULTS.successful, solution.stats["num_steps"]
-
-
-def _progress(**info) -> None:
-    def show(step, loss):
-        step, loss = np.ravel(step)[0], np.ravel(loss)[0]
-        print(f"  step {int(step):4d}  chi2 {2 * float(loss):.6g}", flush=True)
-
-    jax.debug.callback(show, info["num_steps"][1], info["loss_last_accepted_step"][1])
+def _progress_printer(enabled: bool):
+    def show(step, chi2):
+        finite = chi2[np.isfinite(chi2)]
+        if finite.size:
+            print(f"  step {step:4d}  best chi2 {finite.min():.6g}", flush=True)
+    return show if enabled else None
 
 
 class Fitter:
     """A joint fit of one scene, compiled once: call it to fit, again to refit new data.
 
-    Compilation (tens of seconds) depends only on the scene's geometry, free
-    parameters and number of starts; the data, the starting values and the
-    tolerance can change between calls without recompiling, e.g. for a series of
-    radiographs of one sample.
+    Compilation depends only on the scene's geometry and free parameters; the data
+    and the start can change between calls without recompiling, e.g. for a series
+    of radiographs of one sample.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
-    RMS error in T. n_starts: > 1 runs that many starting points (the scene's values
-    and random ones inside the bounds; one after another on a CPU, batched with vmap
-    on an accelerator) and keeps the best.
-    tolerance: stop when a step moves no parameter by more than this many standard
-    errors. progress: print step and chi-square while fitting. Runs in float64.
+    RMS error in T. n_starts: > 1 adds that many - 1 random starts inside the bounds
+    to the best points of the global scan. tolerance: stop when a step moves no
+    parameter by more than this many standard errors. progress: print what happens.
+    Runs in float64.
     """
 
     def __init__(self, scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
@@ -251,110 +209,216 @@ class Fitter:
             raise FwdfitError("fit needs float64: call jax.config.update('jax_enable_x64', True) first")
         if not tolerance > 0:
             raise FwdfitError(f"tolerance must be > 0, got {tolerance}")
-        self.scene, self.n_starts, self.tolerance, self.progress = scene, n_starts, tolerance, progress
+        if n_starts < 1:
+            raise FwdfitError(f"n_starts must be >= 1, got {n_starts}")
+        self.scene, self.n_starts, self.tolerance, self.max_steps = scene, n_starts, tolerance, max_steps
+        self.progress = progress
         self.free = free_parameters(scene, vary, bounds)
-        T, sigma, self.sigma_from_data = _data(scene)
+        self._data = _data(scene)
         tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)
-        model = build_model(scene, accuracy, free=[p.name for p in self.free],
-                            tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
-        self.pixel_um = min(scene.instruments[p.instrument].pixel_um for p in scene.profiles)
-        coarse_px = _SMOOTHING_SCHEDULE_UM[0] / self.pixel_um
-        self.objective = Objective(model, assembler(scene, self.free), tuple(map(jnp.asarray, T)),
-                                   tuple(map(jnp.asarray, sigma)), jnp.zeros(2 * math.ceil(3 * coarse_px) + 1))
-        free = self.free
-        verbose = _progress if progress and n_starts == 1 else False
-        # The objective is an argument, not a closure: constants would be folded at compile time.
-        # The starts run one after another on a CPU, where a batch gains no parallelism and
-        # every start would wait for the slowest; on an accelerator they run batched (vmap).
-        batch = 1 if jax.default_backend() == "cpu" else n_starts
-        runner = eqx.filter_jit(
-            lambda o, u0s, tol, final: jax.lax.map(
-                lambda u0: _solve(o, u0, tol, final, free, max_steps, verbose), u0s, batch_size=batch))
-        start_time = time.perf_counter()
-        lowered = runner.lower(self.objective, jnp.zeros((n_starts, len(free))), jnp.asarray(tolerance),
-                               jnp.asarray(True))
-        # XLA compiles the solver on a second thread while this one compiles the exact
-        # derivative that gives the errors at the optimum (one call compiles it).
-        values = jnp.asarray([p.value for p in free])
-        with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-            solver = pool.submit(lowered.compile)
-            jax.block_until_ready(_directional(self.objective, values, jnp.zeros_like(values)))
-            self._compiled = solver.result()
-        self.compile_time_s = time.perf_counter() - start_time
+        plan_scene = _plan_scene(scene, self.free)
+        self.model = build_model(plan_scene, accuracy, free=[p.name for p in self.free],
+                                 tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
+        self.assemble = assembler(plan_scene, self.free)
+        if progress:
+            print(f"compiling the model for this geometry ({len(scene.profiles)} profiles, "
+                  f"{len(self.model.groups)} static plans; about {_compile_guess_s(self.model):.0f} s "
+                  "the first time, seconds once cached)", flush=True)
+        self.predict = Predictor(self.model, self.assemble, len(self.free))
+        self.compile_time_s = self.predict.compile_time_s
+        lengths = [len(p.x_um) for p in scene.profiles]
+        pixels = [scene.instruments[p.instrument].pixel_um for p in scene.profiles]
+        self._smoothers = {s: _Smoother(lengths, pixels, s)
+                           for s in (_SEARCH_SMOOTHING_UM, *_SMOOTHING_SCHEDULE_UM)}
 
-    def starts(self, seed: int = 0) -> np.ndarray:
-        """Starting values (n_starts, n_free) in physical units: the scene's, then random ones."""
-        u0 = np.array([float(p.to_unit(p.value)) for p in self.free])
+    def random_starts(self, n: int, around: np.ndarray, seed: int = 0) -> np.ndarray:
+        """n random starting points (n, n_free): uniform inside two bounds, else spread
+        around ``around`` (20 % beside one bound, five typical steps without bounds)."""
         rng = np.random.default_rng(seed)
-        rows = [u0]
-        for _ in range(self.n_starts - 1):
-            u = []
-            for p, centre in zip(self.free, u0):
-                if np.isfinite(p.low) and np.isfinite(p.high):
-                    u.append(rng.normal(centre, 1.0))  # spread over the box
-                elif np.isfinite(p.low) or np.isfinite(p.high):
-                    u.append(centre + rng.normal(0.0, 0.2))  # ~20 % relative
-                else:
-                    u.append(centre + rng.normal(0.0, 5.0))  # ~5 typical steps
-            rows.append(np.array(u))
-        return np.array([[float(p.from_unit(v)) for p, v in zip(self.free, row)] for row in rows])
+        rows = np.empty((n, len(self.free)))
+        for j, p in enumerate(self.free):
+            if math.isfinite(p.low) and math.isfinite(p.high):
+                rows[:, j] = rng.uniform(p.low, p.high, n)
+            elif math.isfinite(p.low) or math.isfinite(p.high):
+                rows[:, j] = p.from_unit(p.to_unit(around[j]) + rng.normal(0.0, 0.2 * abs(p.to_unit(around[j])) + 1, n))
+            else:
+                rows[:, j] = around[j] + rng.normal(0.0, 5 * p.step, n)
+        return rows
 
-    def __call__(self, T=None, T_err=None, *, starts=None, seed: int = 0) -> FitResult:
-        """Fit; returns the best of the starts.
+    def _values(self, u: np.ndarray) -> np.ndarray:
+        return np.stack([p.from_unit(u[..., j]) for j, p in enumerate(self.free)], axis=-1)
+
+    def _units(self, values: np.ndarray) -> np.ndarray:
+        return np.stack([p.to_unit(values[..., j]) for j, p in enumerate(self.free)], axis=-1)
+
+    def __call__(self, T=None, T_err=None, *, start=None, seed: int = 0) -> FitResult:
+        """Fit; returns the best of the local starts.
 
         T, T_err: new data, one array per profile on the scene's pixels (default: the
         scene's; T_err defaults to the scene's, else it is estimated from T).
-        starts: (n_starts, n_free) physical starting values inside the bounds
-        (default: ``self.starts(seed)``).
+        start: (n_free,) the user's starting values (default: the scene's), one more
+        candidate for the global scan.
         """
-        scene, objective, sigma_from_data = self.scene, self.objective, self.sigma_from_data
-        if T is not None:
-            profiles = []
-            for p, t, e in zip(scene.profiles, T, T_err if T_err is not None else [None] * len(T)):
-                profiles.append(dataclasses.replace(p, T=np.asarray(t, dtype=float).copy(),
-                                                    T_err=p.T_err if e is None else np.asarray(e, dtype=float).copy()))
-            if len(profiles) != len(scene.profiles) or any(
-                    q.T.shape != p.x_um.shape for q, p in zip(profiles, scene.profiles)):
-                raise FwdfitError("T must hold one array per profile, on the profile's pixels")
-            scene = dataclasses.replace(scene, profiles=tuple(profiles))
-            data, sigma, sigma_from_data = _data(scene)
-            objective = eqx.tree_at(lambda o: (o.T, o.sigma), objective,
-                                    (tuple(map(jnp.asarray, data)), tuple(map(jnp.asarray, sigma))))
-        starts = self.starts(seed) if starts is None else np.asarray(starts, dtype=float)
-        if starts.shape != (self.n_starts, len(self.free)):
-            raise FwdfitError(f"starts must have shape ({self.n_starts}, {len(self.free)}), got {starts.shape}")
-        for p, column in zip(self.free, starts.T):
-            if not np.all((column > p.low) & (column < p.high)):
-                raise FwdfitError(f"starts: {p.name} must lie inside its bounds ({p.low:g}, {p.high:g})")
-        u = jnp.asarray([[float(p.to_unit(v)) for p, v in zip(self.free, row)] for row in starts])
-        start_time = time.perf_counter()
-        # Coarse to fine: model and data smoothed first (a wide basin in which the refraction
-        # peaks cancel out), then the full-resolution fit from there. The coarse stages only
-        # need to land in the final basin.
-        total_steps = 0
+        scene, free = self.scene, self.free
+        data, sigma, sigma_from_data = self._data if T is None else self._new_data(T, T_err)
+        data_all, sigma_all = np.concatenate(data), np.concatenate(sigma)
+        begin = time.perf_counter()
+        evaluations = self.predict.n_evaluations
+
+        def residuals(values, smoothing_um):
+            smooth = self._smoothers[smoothing_um]
+            T_model, _ = self.predict(values)
+            return (smooth(T_model) - smooth(data_all[None]))/ sigma_all
+
+        guess = estimate(scene, free, data, self.model)
+        user = np.array([p.value for p in free]) if start is None else np.asarray(start, float)
+        if user.shape != (len(free),):
+            raise FwdfitError(f"start must have shape ({len(free)},), got {user.shape}")
+        complete = np.all(np.isfinite(user)) and all(p.low < v < p.high for p, v in zip(free, user))
+        candidates, n_scanned = global_search(
+            free, guess, lambda v: np.sum(residuals(v, _SEARCH_SMOOTHING_UM) ** 2, axis=1),
+            _CANDIDATES, extra=user[None] if complete else None)
+        self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
+        if self.n_starts > 1:
+            candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
+        u = self._units(candidates)
+        total_steps = np.zeros(len(u), int)
         for stage, smoothing_um in enumerate(_SMOOTHING_SCHEDULE_UM):
             final = stage == len(_SMOOTHING_SCHEDULE_UM) - 1
-            if self.progress:
-                print(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)}: model and data smoothed "
-                      f"by a {smoothing_um:g} µm Gaussian", flush=True)
-            tolerance = self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE)
-            if 0 < stage and not final:
-                # A coarse stage that ended on a bound had too little information to hold it
-                # there (the smoothing hides weak interfaces): the finer one starts inside.
-                u = jnp.stack([p.inside(u[:, i], _UNPIN_FRACTION) for i, p in enumerate(self.free)], axis=1)
-            u, chi2, success, steps = self._compiled(objective.with_smoothing(smoothing_um / self.pixel_um),
-                                                     u, jnp.asarray(tolerance), jnp.asarray(final))
-            total_steps += np.asarray(steps)
-        values = jax.vmap(lambda x: _values_of(self.free, x))(u)
-        values, chi2, success = jax.block_until_ready((values, chi2, success))
-        wall_time = time.perf_counter() - start_time
-        finite = np.isfinite(np.asarray(chi2)) & np.all(np.isfinite(np.asarray(values)), axis=1)
-        if not finite.any():
+            solution = levenberg_marquardt(
+                lambda rows, s=smoothing_um: residuals(self._values(rows), s), u, self._typical(u, final),
+                tolerance=self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE),
+                max_steps=self.max_steps, progress=_progress_printer(self.progress))
+            u = solution.u
+            total_steps += solution.steps
+            self._say(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)} (model and data smoothed by "
+                      f"{smoothing_um:g} um): best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
+            if not final:
+                keep = _distinct_contenders(solution)
+                u, total_steps = u[keep], total_steps[keep]
+                u = np.stack([p.inside(u[:, j], _UNPIN_FRACTION) for j, p in enumerate(free)], axis=1)
+        chi2 = solution.chi2
+        best = int(np.argmin(np.where(np.isfinite(chi2), chi2, np.inf)))
+        if not np.isfinite(chi2[best]):
             raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
-        best = int(np.argmin(np.where(finite, np.asarray(chi2), np.inf)))
-        return _result(scene, self.free, objective, np.asarray(values[best]),
-                       np.where(finite, np.asarray(chi2), np.inf), best, bool(success[best]),
-                       int(total_steps[best]), self.compile_time_s, wall_time, sigma_from_data)
+        values = self._values(u[best])
+        result = self._result(data, sigma, sigma_from_data, values, solution, best, int(total_steps[best]), guess)
+        self._say("uncertainties and quality gate", begin, evaluations)
+        wall = time.perf_counter() - begin
+        return dataclasses.replace(result, wall_time_s=wall,
+                                   n_evaluations=self.predict.n_evaluations - evaluations)
+
+    def _say(self, what: str, begin: float, evaluations: int) -> None:
+        if self.progress:
+            print(f"{what}  [{time.perf_counter() - begin:.1f} s, "
+                  f"{self.predict.n_evaluations - evaluations} model evaluations]", flush=True)
+
+    def _typical(self, u: np.ndarray, final: bool) -> np.ndarray:
+        """Largest solver scale (K, n), in u: one unit in the coarse stages; in the final one,
+        one typical physical step, so that a value converging onto a bound stops there."""
+        if not final:
+            return np.ones_like(u)
+        slope = np.stack([p.value_per_unit(u[:, j]) for j, p in enumerate(self.free)], axis=1)
+        steps = np.array([p.step for p in self.free])
+        return np.maximum(steps / np.maximum(np.abs(slope), _TINY_SLOPE), 1.0)
+
+    def _new_data(self, T, T_err):
+        scene = self.scene
+        if len(T) != len(scene.profiles) or any(np.shape(t) != p.x_um.shape for t, p in zip(T, scene.profiles)):
+            raise FwdfitError("T must hold one array per profile, on the profile's pixels")
+        errs = T_err if T_err is not None else [None] * len(T)
+        profiles = tuple(dataclasses.replace(p, T=np.array(t, dtype=float),
+                                             T_err=p.T_err if e is None else np.array(e, dtype=float))
+                         for p, t, e in zip(scene.profiles, T, errs))
+        return _data(dataclasses.replace(scene, profiles=profiles))
+
+    def _result(self, data, sigma, sigma_from_data, values, solution, best, steps, guess) -> FitResult:
+        scene, free = self.scene, self.free
+        data_all, sigma_all = np.concatenate(data), np.concatenate(sigma)
+        dof = len(data_all) - len(free)
+        # Central differences at the optimum, a tenth of a standard error wide (from the
+        # solver's last forward-difference Jacobian, in physical units).
+        slope = np.array([p.value_per_unit(u) for p, u in zip(free, self._units(values))])
+        rough = covariance(solution.jacobian[best] / np.where(slope == 0, np.inf, slope), 1.0, dof, False)
+        steps_phys = _ERROR_STEP * np.sqrt(np.clip(np.diag(rough), 0, None))
+        steps_phys = np.where(steps_phys > 0, steps_phys, 1e-6 * np.array([p.step for p in free]))
+        J_model, J_att = central_differences(self.predict, values, steps_phys)
+        jacobian = J_model / sigma_all[:, None]
+        (T_model,), (T_att,) = self.predict(values[None])
+        z = (data_all - T_model) / sigma_all
+        chi2 = float(np.sum(z * z))
+        cov = covariance(jacobian, chi2, dof, sigma_from_data)
+        errors, correlation = errors_and_correlation(cov)
+        att_err = band(J_att, cov)
+        notes = []
+        for p, column, value, error in zip(free, jacobian.T, values, errors):
+            if not np.any(column) or error > 10 * max(abs(value), p.step):
+                notes.append(f"{p.name} is not constrained by the data (error {error:.3g})")
+        converged = bool(solution.converged[best])
+        if not converged:
+            notes.append("the solver did not converge: the values are the last accepted step")
+        quality = self._quality(data, sigma, T_model, values)
+        if not quality.passed:
+            notes.append(quality.summary())
+        for note in notes:
+            warnings.warn(note, stacklevel=3)
+        profiles, offset = [], 0
+        for p, t, s in zip(scene.profiles, data, sigma):
+            part = slice(offset, offset + len(p.x_um))
+            m, a = T_model[part], T_att[part]
+            profiles.append(FittedProfile(p.name, p.x_um, t, s, m, a, att_err[part], t - (m - a)))
+            offset += len(p.x_um)
+        message = "converged" if converged else "did not converge within max_steps (see the step count)"
+        return FitResult(tuple(p.name for p in free), values, errors, correlation, chi2, dof, converged,
+                         message, steps, self.compile_time_s, 0.0, tuple(profiles), tuple(notes),
+                         sigma_from_data, _fitted_scene(scene, free, values), solution.chi2, quality,
+                         dict(guess.values), 0)
+
+    def _quality(self, data, sigma, T_model, values) -> Quality:
+        """The quality gate on the unsmoothed residuals, with edge regions at every interface."""
+        scene = self.scene
+        params, _, _ = self.assemble(jax.numpy.asarray(values))
+        thickness = np.asarray(params.thickness_um)
+        tilt = float(params.tilt_deg)
+        names = [l.name for l in scene.sample.layers]
+        cumulative = np.concatenate([[0.0], np.cumsum(thickness)])
+        across = (cumulative - 0.5 * cumulative[-1]) / math.cos(math.radians(tilt))
+        media = ["vacuum"] + names + ["vacuum"]
+        labels = [f"{media[k]} | {media[k + 1]}" for k in range(len(across))]
+        interfaces, halves, z, offset = [], [], [], 0
+        for i, p in enumerate(scene.profiles):
+            instrument = scene.instruments[p.instrument]
+            centre = float(params.centre_um) + float(params.shift_um[i])
+            slope_um = p.distance_mm * 1e3 * math.tan(math.radians(tilt))
+            interfaces.append([(centre + a, centre + a + slope_um, label) for a, label in zip(across, labels)])
+            penumbra = p.distance_mm * instrument.aperture_mm / instrument.aperture_distance_m
+            spread = 0.5 * scene.sample.depth_mm * 1e3 * abs(math.tan(math.radians(tilt)))
+            halves.append(edge_half_width_um(p.distance_mm, penumbra, instrument.psf_fwhm_um, spread))
+            n = len(p.x_um)
+            z.append((data[i] - T_model[offset:offset + n]) / sigma[i])
+            offset += n
+        return assess([p.name for p in scene.profiles], [p.x_um for p in scene.profiles], z,
+                      interfaces, halves, len(self.free))
+
+
+def _distinct_contenders(solution) -> np.ndarray:
+    """Indices of the coarse stage's ends worth refining: within _KEEP_DELTA_CHI2 of the best,
+    and not where a better one already ended (closer than one standard error in every value)."""
+    order = np.argsort(np.where(np.isfinite(solution.chi2), solution.chi2, np.inf))
+    errors = np.sqrt(np.clip(np.diagonal(np.linalg.pinv(
+        solution.jacobian.transpose(0, 2, 1) @ solution.jacobian, hermitian=True), axis1=1, axis2=2), 0, None))
+    kept: list[int] = []
+    for i in order:
+        if solution.chi2[i] > solution.chi2[order[0]] + _KEEP_DELTA_CHI2:
+            break
+        if all(np.any(np.abs(solution.u[i] - solution.u[k]) > errors[k]) for k in kept):
+            kept.append(int(i))
+    return np.array(kept)
+
+
+def _compile_guess_s(model) -> float:
+    """A rough first-time compile time (s) on two CPU cores: grows with the static plans."""
+    return 2.0 + 1.5 * len(model.groups)
 
 
 def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
@@ -363,76 +427,14 @@ def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = 
     """Fit the free parameters of a scene to all of its measured profiles at once.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
-    RMS error in T. n_starts: > 1 runs that many starting points (the scene's values
-    and random ones inside the bounds, drawn with ``seed``; see ``Fitter``) and keeps
-    the best. tolerance: stop when a step moves no parameter by more than
-    this many standard errors. progress: print step and chi-square while fitting.
-    Runs in float64. To refit new data without recompiling, use ``Fitter``.
+    RMS error in T. n_starts: > 1 adds random starts (drawn with ``seed``) to the
+    global scan's best points. tolerance: stop when a step moves no parameter by more
+    than this many standard errors. progress: print what happens. Runs in float64.
+    To refit new data without recompiling, use ``Fitter``.
     """
     fitter = Fitter(scene, vary=vary, bounds=bounds, accuracy=accuracy, n_starts=n_starts,
                     max_steps=max_steps, tolerance=tolerance, progress=progress)
     return fitter(seed=seed)
-
-
-@eqx.filter_jit
-def _directional(objective: Objective, values, tangent):
-    """Residuals and T_att, their exact derivatives along ``tangent``, and the model profiles."""
-
-    def outputs(v):
-        T_model, T_att = objective.predict(v)
-        residuals = jnp.concatenate([(m - t) / s for m, t, s in zip(T_model, objective.T, objective.sigma)])
-        return (residuals, jnp.concatenate(T_att)), (T_model, T_att)
-
-    _, derivatives, profiles = jax.jvp(outputs, (values,), (tangent,), has_aux=True)
-    return derivatives, profiles
-
-
-def _linearise(objective: Objective, values):
-    """Residual Jacobian, T_att Jacobian and model profiles at ``values`` (exact, forward mode).
-
-    One tangent per call rather than ``jacfwd``: the single-tangent derivative
-    compiles in about half the time, and its calls cost little next to a fit.
-    """
-    columns = [_directional(objective, values, tangent) for tangent in jnp.eye(values.shape[0], dtype=values.dtype)]
-    jacobian, att_jacobian = (jnp.stack(c, axis=1) for c in zip(*(derivatives for derivatives, _ in columns)))
-    return jacobian, att_jacobian, columns[0][1]
-
-
-def _result(scene, free, objective: Objective, values, chi2_per_start, best, converged, steps,
-            compile_time, wall_time, sigma_from_data) -> FitResult:
-    chi2 = float(chi2_per_start[best])
-    jacobian, att_jacobian, (T_model, T_att) = _linearise(objective, jnp.asarray(values))
-    jacobian, att_jacobian = np.asarray(jacobian), np.asarray(att_jacobian)
-    n_data = jacobian.shape[0]
-    dof = n_data - len(free)
-    notes = []
-    curvature = jacobian.T @ jacobian
-    covariance = np.linalg.pinv(curvature, rcond=1e-12, hermitian=True)
-    if sigma_from_data:
-        covariance = covariance * chi2 / max(dof, 1)
-    errors = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
-    outer = np.outer(errors, errors)
-    correlation = np.divide(covariance, outer, out=np.zeros_like(covariance), where=outer > 0)
-    for p, column, value, error in zip(free, jacobian.T, values, errors):
-        if not np.any(column) or error > 10 * max(abs(value), p.step):
-            notes.append(f"{p.name} is not constrained by the data (error {error:.3g})")
-    att_err = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", att_jacobian, covariance, att_jacobian), 0, None))
-    profiles, offset = [], 0
-    for p, data, s, m, a in zip(scene.profiles, objective.T, objective.sigma, T_model, T_att):
-        n = len(p.x_um)
-        m, a = np.asarray(m), np.asarray(a)
-        profiles.append(FittedProfile(p.name, p.x_um, np.asarray(data), np.asarray(s), m, a,
-                                      att_err[offset:offset + n], np.asarray(data) - (m - a)))
-        offset += n
-    message = "converged" if converged else "did not converge within max_steps (see the step count)"
-    if not converged:
-        notes.append("the solver did not converge: the values are the last accepted step")
-    for note in notes:
-        warnings.warn(note, stacklevel=3)
-    fitted = _fitted_scene(scene, free, values)
-    return FitResult(tuple(p.name for p in free), values, errors, correlation, chi2, dof, converged,
-                     message, steps, compile_time, wall_time, tuple(profiles), tuple(notes),
-                     sigma_from_data, fitted, chi2_per_start)
 
 
 def _fitted_scene(scene: Scene, free: tuple[FreeParameter, ...], values) -> Scene:

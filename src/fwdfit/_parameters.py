@@ -7,8 +7,12 @@ mu_per_m | mu_per_m_per_A>``, ``profiles.<profile>.<distance_mm | shift_um | nor
 background>``; ``profiles.*.<key>`` frees one parameter per profile. A layer
 tied with ``same_as`` shares its twin's parameters under either name.
 
-Bounds are enforced by transforms (a sigmoid between two bounds, an exponential
-above a lower bound), so the solver works unconstrained.
+Bounds are enforced by transforms (a sigmoid between two bounds, a softplus
+beyond one bound), so the solver works unconstrained. The transforms are NumPy:
+the solver's logic runs on the host around one compiled model (``_predict``).
+
+A free parameter may have no start value in the scene (NaN): the fit estimates
+it from the data (``_starts``).
 """
 
 from __future__ import annotations
@@ -34,8 +38,12 @@ _LAYER_KEYS = {
     "mu_per_m": ((0.0, _INF), 1.0),
     "mu_per_m_per_A": ((0.0, _INF), 0.1),
 }
+# A free tilt is bounded by +-DEFAULT_TILT_BOUND_DEG, widened to twice a larger start
+# (at most MAX_TILT_DEG): kernel windows grow with the tilts the model must serve,
+# and samples are aligned to better than a degree.
+DEFAULT_TILT_BOUND_DEG = 1.0
 _SAMPLE_KEYS = {
-    "tilt_deg": ((-MAX_TILT_DEG, MAX_TILT_DEG), 0.01),
+    "tilt_deg": ((-DEFAULT_TILT_BOUND_DEG, DEFAULT_TILT_BOUND_DEG), 0.01),
     "centre_um": ((-_INF, _INF), 1.0),
     "depth_mm": ((0.0, _INF), 0.01),
     "drift_um_per_mm": ((-_INF, _INF), 0.01),
@@ -50,7 +58,7 @@ _PROFILE_KEYS = {
 
 @dataclasses.dataclass(frozen=True)
 class FreeParameter:
-    """One free parameter: its name, scene value, bounds and typical step (scene units)."""
+    """One free parameter: its name, scene value (NaN: none given), bounds and typical step (scene units)."""
 
     name: str
     value: float
@@ -65,25 +73,39 @@ class FreeParameter:
     # keeps a useful gradient close to it.
 
     def to_unit(self, value):
-        """Physical value -> unconstrained coordinate."""
+        """Physical value -> unconstrained coordinate (NumPy, elementwise)."""
+        value = np.asarray(value, dtype=float)
         if math.isfinite(self.low) and math.isfinite(self.high):
             fraction = (value - self.low) / (self.high - self.low)
-            return self._width * (jnp.log(fraction) - jnp.log1p(-fraction))
+            return self._width * (np.log(fraction) - np.log1p(-fraction))
         if math.isfinite(self.low) or math.isfinite(self.high):
             gap = (value - self.low) if math.isfinite(self.low) else (self.high - value)
             x = gap / self.step
-            return x + jnp.log(-jnp.expm1(-x))  # inverse softplus, stable for large x
-        return (value - self.value) / self.step
+            return x + np.log(-np.expm1(-x))  # inverse softplus, stable for large x
+        return (value - self.origin) / self.step
 
     def from_unit(self, u):
-        """Unconstrained coordinate -> physical value (inside the bounds)."""
+        """Unconstrained coordinate -> physical value inside the bounds (NumPy, elementwise)."""
+        u = np.asarray(u, dtype=float)
         if math.isfinite(self.low) and math.isfinite(self.high):
-            return self.low + (self.high - self.low) * jax.nn.sigmoid(u / self._width)
+            return self.low + (self.high - self.low) * 0.5 * (1.0 + np.tanh(0.5 * u / self._width))
+        softplus = np.logaddexp(0.0, u)
         if math.isfinite(self.low):
-            return self.low + self.step * jax.nn.softplus(u)
+            return self.low + self.step * softplus
         if math.isfinite(self.high):
-            return self.high - self.step * jax.nn.softplus(u)
-        return self.value + self.step * u
+            return self.high - self.step * softplus
+        return self.origin + self.step * u
+
+    def value_per_unit(self, u):
+        """d value / d u at u (NumPy, elementwise)."""
+        u = np.asarray(u, dtype=float)
+        if math.isfinite(self.low) and math.isfinite(self.high):
+            s = 0.5 * (1.0 + np.tanh(0.5 * u / self._width))
+            return (self.high - self.low) * s * (1.0 - s) / self._width
+        sigmoid = 0.5 * (1.0 + np.tanh(0.5 * u))
+        if math.isfinite(self.low) or math.isfinite(self.high):
+            return self.step * sigmoid
+        return np.full_like(u, self.step)
 
     def inside(self, u, fraction: float):
         """u moved, if needed, so that its value lies at least ``fraction`` of the box from
@@ -91,7 +113,12 @@ class FreeParameter:
         if not (math.isfinite(self.low) and math.isfinite(self.high)):
             return u
         limit = self._width * math.log((1.0 - fraction) / fraction)
-        return jnp.clip(u, -limit, limit)
+        return np.clip(u, -limit, limit)
+
+    @property
+    def origin(self) -> float:
+        """Where u = 0 lies for an unbounded parameter: its start, else 0."""
+        return self.value if math.isfinite(self.value) else 0.0
 
     @property
     def _width(self) -> float:
@@ -145,10 +172,17 @@ def free_parameters(scene: Scene, vary=None, bounds=None) -> tuple[FreeParameter
             if canonical in seen:
                 continue
             seen.add(canonical)
+            given = entry in bounds or canonical in bounds
             low, high = bounds.get(entry, bounds.get(canonical, default))
-            if key == "distance_mm" and entry not in bounds:
-                low = 0.5 * scene.sample.depth_mm
             value = _scene_value(scene, key, target)
+            if key == "distance_mm" and not given:
+                low = 0.5 * scene.sample.depth_mm
+            if key == "tilt_deg" and not given and math.isfinite(value):
+                high = min(max(high, 2.0 * abs(value)), MAX_TILT_DEG)
+                low = -high
+            if math.isnan(value):
+                free.append(FreeParameter(canonical, value, low, high, step, target))
+                continue
             if not low <= value <= high:
                 raise FwdfitError(f"{scene.path}: fit.bounds.{entry}: start value {value} "
                                   f"is outside [{low}, {high}]")

@@ -1,0 +1,150 @@
+"""The quality gate: does the data accept the fitted model?
+
+After a fit, the normalised residuals (data - model) / sigma are compared with
+their noise expectation over the whole fit, per profile and per region of each
+profile (the edge regions around every interface, where refraction lives, and the
+plateaus between them): chi-square against its expectation n +- sqrt(2 n), and the
+number of runs of equal sign (Wald-Wolfowitz) against its expectation, which
+catches a systematic misfit that chi-square spreads thin. A region fails when its
+excess is both significant (more than ``SIGNIFICANCE`` standard deviations) and
+large (reduced chi-square above a limit), so that a model error well below the
+noise of a long profile does not reject a good fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+SIGNIFICANCE = 5.0  # standard deviations of the noise expectation
+_LIMIT_OVERALL = 1.3  # reduced chi-square above which the whole fit fails (when significant)
+_LIMIT_PROFILE = 1.5
+_LIMIT_REGION = 2.0
+_MIN_BROAD_PIXELS = 30  # chi-square alone fails a region of at least this many pixels
+_MIN_EDGE_HALF_WIDTH_UM = 15.0
+_FRINGE_ANGLE_RAD = 3e-3  # reach of the refraction fringes: this angle times the distance
+
+
+@dataclasses.dataclass(frozen=True)
+class Region:
+    """One stretch of one profile with its residual statistics."""
+
+    profile: str
+    what: str  # e.g. "edge Al | vacuum", "inside Al", "open beam"
+    x_from_um: float
+    x_to_um: float
+    n: int
+    chi2: float
+    mean_z: float  # sum of the residuals / sqrt(n): a systematic offset
+    runs_z: float  # (runs - expected) / sd; strongly negative: residuals in long runs of one sign
+
+    @property
+    def chi2_reduced(self) -> float:
+        return self.chi2 / max(self.n, 1)
+
+    @property
+    def chi2_z(self) -> float:
+        return (self.chi2 - self.n) / math.sqrt(2.0 * max(self.n, 1))
+
+    def fails(self, limit: float) -> bool:
+        """Whether the excess is large (reduced chi-square above ``limit``) and significant:
+        systematic (an offset, or runs of one sign) or, over a long stretch, chi-square alone.
+        A few pixels off both ways (the finest refraction fringes) is not enough."""
+        systematic = abs(self.mean_z) > SIGNIFICANCE or self.runs_z < -SIGNIFICANCE
+        broad = self.chi2_z > SIGNIFICANCE and self.n >= _MIN_BROAD_PIXELS
+        return self.chi2_reduced > limit and (systematic or broad)
+
+    def describe(self) -> str:
+        return (f"profile {self.profile}, x {self.x_from_um:.0f} to {self.x_to_um:.0f} um ({self.what}): "
+                f"chi2/pixel {self.chi2_reduced:.2f} over {self.n} pixels, mean residual "
+                f"{self.mean_z / math.sqrt(max(self.n, 1)):+.2f} sigma")
+
+
+@dataclasses.dataclass(frozen=True)
+class Quality:
+    """The gate's verdict: ``passed``, the regions that fail (worst first) and one line saying where."""
+
+    passed: bool
+    overall: Region
+    profiles: tuple[Region, ...]
+    regions: tuple[Region, ...]
+    failing: tuple[Region, ...]
+
+    def summary(self) -> str:
+        if self.passed:
+            return f"the data accept the fit (chi2/pixel {self.overall.chi2_reduced:.3f})"
+        return "the data reject the fit: " + self.failing[0].describe()
+
+
+def runs_z(signs: np.ndarray) -> float:
+    """Wald-Wolfowitz runs statistic of a sign sequence (0 if one sign only)."""
+    positive = int(np.sum(signs > 0))
+    negative = len(signs) - positive
+    n = positive + negative
+    if positive == 0 or negative == 0 or n < 3:
+        return 0.0
+    runs = 1 + int(np.sum(signs[1:] != signs[:-1]))
+    expected = 2.0 * positive * negative / n + 1.0
+    variance = (expected - 1.0) * (expected - 2.0) / (n - 1.0)
+    return (runs - expected) / math.sqrt(max(variance, 1e-12))
+
+
+def _region(profile: str, what: str, x, z) -> Region:
+    return Region(profile, what, float(x[0]), float(x[-1]), len(z), float(np.sum(z * z)),
+                  float(np.sum(z) / math.sqrt(max(len(z), 1))), runs_z(np.sign(z)))
+
+
+def edge_half_width_um(distance_mm: float, penumbra_um: float, psf_fwhm_um: float, tilt_spread_um: float) -> float:
+    """Half-width (µm) of the region around an interface where its refraction fringes lie."""
+    return max(_MIN_EDGE_HALF_WIDTH_UM,
+               0.5 * penumbra_um + _FRINGE_ANGLE_RAD * distance_mm * 1e3 + psf_fwhm_um + tilt_spread_um)
+
+
+def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
+           interfaces: list[list[tuple[float, str]]], half_width_um: list[float], n_free: int) -> Quality:
+    """Judge normalised residuals z (one array per profile, on pixels x_um).
+
+    interfaces: per profile, (x_from, x_to µm on the detector, label) of every interface:
+    where its attenuation edge and its refraction fringes land;
+    half_width_um: per profile, the margin added on both sides of that stretch.
+    """
+    every = np.concatenate(z)
+    overall = dataclasses.replace(_region("all", "all profiles", np.array([0.0]), every),
+                                  n=max(len(every) - n_free, 1))
+    per_profile, regions = [], []
+    for name, x, r, faces, half in zip(names, x_um, z, interfaces, half_width_um):
+        per_profile.append(_region(name, "whole profile", x, r))
+        label = np.full(len(x), "", dtype=object)
+        for lo, hi, what in faces:
+            near = (x >= min(lo, hi) - half) & (x <= max(lo, hi) + half)
+            label[near & (label == "")] = f"edge {what}"
+        plateaus = sorted(0.5 * (lo + hi) for lo, hi, _ in faces)
+        for i in np.flatnonzero(label == ""):
+            inside = int(np.searchsorted(plateaus, x[i]))
+            label[i] = f"plateau {inside}"
+        for what in dict.fromkeys(label):
+            where = label == what
+            if where.sum() >= 5:
+                regions.append(_region(name, _plateau_name(what, faces), x[where], r[where]))
+    failing = [r for r in regions if r.fails(_LIMIT_REGION)] + [r for r in per_profile if r.fails(_LIMIT_PROFILE)]
+    if overall.fails(_LIMIT_OVERALL):
+        failing.append(overall)
+    failing.sort(key=lambda r: -r.chi2_z)
+    return Quality(not failing, overall, tuple(per_profile), tuple(regions), tuple(failing))
+
+
+def _plateau_name(label: str, faces) -> str:
+    """'plateau k' -> what lies there (open beam or a layer), from the interface labels."""
+    if not label.startswith("plateau"):
+        return label
+    k = int(label.split()[1])
+    ordered = [what for _, _, what in sorted(faces)]
+    if not ordered:
+        return "whole profile"
+    if k == 0:
+        return "open beam, left"
+    if k == len(ordered):
+        return "open beam, right"
+    return "inside " + ordered[k - 1].split(" | ")[-1]

@@ -1,0 +1,123 @@
+"""The global stage of a fit: a cheap scan of what the edges pin only weakly.
+
+Positions, thicknesses and attenuations come from the data (``_starts``); the tilt
+and the SLDs shape only the refraction fringes, whose chi-square landscape has
+several basins (a wrong-signed tilt traded against a larger SLD, say). The scan
+evaluates chi-square, model and data smoothed alike, on a grid of tilts (refined
+around the best few), then on a grid of SLD scales at the best tilts, all through
+the one compiled model; the local solver then starts from the best few points.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from ._parameters import FreeParameter
+from ._starts import Estimate
+
+_TILT_SPACING_DEG = 0.1  # coarse tilt grid up to 1 degree ...
+_WIDE_TILT_SPACING_DEG = 0.25  # ... and beyond
+_TILT_REFINE_DEG = (-0.05, -0.025, 0.025, 0.05)  # around each of the best coarse tilts
+_TILT_MINIMA = 3  # coarse minima refined
+_SLD_FACTORS = (0.6, 0.8, 1.25, 1.6)  # scales of the SLD starts tried ...
+_SLD_VALUES = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0)  # ... or values tried where the scene gives none
+SLD_FACTOR_MAX, SLD_VALUE_MAX = max(_SLD_FACTORS), max(_SLD_VALUES)  # model windows are sized for these
+_UNKNOWN_SLD = 2.0  # SLD of a layer without start until its scan
+_DISTINCT_TILT_DEG = 0.02  # candidates closer in tilt than this, with the same SLDs, are one
+_INSIDE = 1e-3  # candidates stay this fraction of the box inside two bounds
+
+
+def _tilt_grid(low: float, high: float) -> np.ndarray:
+    near = np.arange(-1.0, 1.0 + 1e-9, _TILT_SPACING_DEG)
+    far = np.concatenate([np.arange(-5.0, -1.0, _WIDE_TILT_SPACING_DEG),
+                          np.arange(1.0 + _WIDE_TILT_SPACING_DEG, 5.0 + 1e-9, _WIDE_TILT_SPACING_DEG)])
+    grid = np.concatenate([near, far])
+    return np.sort(grid[(grid > low) & (grid < high)])
+
+
+def _inside(free: tuple[FreeParameter, ...], values: np.ndarray) -> np.ndarray:
+    """values (m, n) moved just inside their bounds."""
+    out = values.copy()
+    for j, p in enumerate(free):
+        span = p.high - p.low
+        margin = _INSIDE * span if math.isfinite(span) else 1e-6 * max(p.step, 1.0)
+        out[:, j] = np.clip(out[:, j], p.low + margin, p.high - margin)
+    return out
+
+
+def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
+                  chi2_of: Callable[[np.ndarray], np.ndarray], n_keep: int,
+                  extra: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """The n_keep best distinct starting points (n_keep, n_free) and the number of points scanned.
+
+    chi2_of: rows of free values (m, n_free) -> chi-square (m,). extra: further points
+    (e.g. the scene's own start) that compete with the scanned ones.
+    """
+    names = [p.name for p in free]
+    tilt = names.index("sample.tilt_deg") if "sample.tilt_deg" in names else None
+    thickness = [names.index(n) for n in estimate.thickness_names]
+    slds = [j for j, p in enumerate(free) if p.target[0] == "sld_e6_per_A2"]
+    unknown_sld = [j for j in slds if math.isnan(estimate.values[names[j]])]
+    base = np.array([estimate.values[n] for n in names], float)
+    base[unknown_sld] = _UNKNOWN_SLD
+    if tilt is not None and math.isnan(base[tilt]):
+        base[tilt] = 0.0
+    tilt_at_base = 0.0 if tilt is None else base[tilt]
+    base_projected = base.copy()
+    base_projected[thickness] = base[thickness] / math.cos(math.radians(tilt_at_base))
+
+    def at_tilts(row: np.ndarray, tilts: np.ndarray) -> np.ndarray:
+        rows = np.repeat(row[None], len(tilts), axis=0)
+        rows[:, tilt] = tilts
+        rows[:, thickness] = row[thickness][None] * np.cos(np.radians(tilts))[:, None]
+        return rows
+
+    points = _inside(free, base[None] if extra is None else np.concatenate([base[None], extra]))
+    chi2 = chi2_of(points)
+    if tilt is not None:
+        coarse = _inside(free, at_tilts(base_projected, _tilt_grid(free[tilt].low, free[tilt].high)))
+        coarse_chi2 = chi2_of(coarse)
+        is_min = (np.r_[True, coarse_chi2[1:] <= coarse_chi2[:-1]]
+                  & np.r_[coarse_chi2[:-1] <= coarse_chi2[1:], True])
+        minima = np.flatnonzero(is_min)
+        minima = minima[np.argsort(coarse_chi2[minima])][:_TILT_MINIMA]
+        refined = _inside(free, at_tilts(base_projected, np.concatenate(
+            [coarse[m, tilt] + np.array(_TILT_REFINE_DEG) for m in minima])))
+        points = np.concatenate([points, coarse, refined])
+        chi2 = np.concatenate([chi2, coarse_chi2, chi2_of(refined)])
+    if slds:
+        best = points[np.argsort(chi2)[:2]]
+        scaled = []
+        for row in best:
+            if unknown_sld:
+                for value in _SLD_VALUES:
+                    trial = row.copy()
+                    trial[unknown_sld] = value
+                    scaled.append(trial)
+            known = [j for j in slds if j not in unknown_sld]
+            if known:
+                for factor in _SLD_FACTORS:
+                    trial = row.copy()
+                    trial[known] = row[known] * factor
+                    scaled.append(trial)
+        scaled = _inside(free, np.array(scaled))
+        points = np.concatenate([points, scaled])
+        chi2 = np.concatenate([chi2, chi2_of(scaled)])
+    order = np.argsort(np.where(np.isfinite(chi2), chi2, np.inf))
+    kept: list[np.ndarray] = []
+    for i in order:
+        if len(kept) == n_keep:
+            break
+        if all(not _same(points[i], k, tilt, slds) for k in kept):
+            kept.append(points[i])
+    return np.array(kept), len(points)
+
+
+def _same(a: np.ndarray, b: np.ndarray, tilt, slds) -> bool:
+    """Whether two candidates would lead the local solver to the same place."""
+    close_tilt = tilt is None or abs(a[tilt] - b[tilt]) < _DISTINCT_TILT_DEG
+    close_sld = all(abs(a[j] - b[j]) < 0.05 * max(abs(b[j]), 0.1) for j in slds)
+    return close_tilt and close_sld

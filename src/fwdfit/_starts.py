@@ -1,0 +1,298 @@
+"""Starting values read off the measured profiles, whatever the scene says.
+
+What the profiles show directly, without a model of refraction:
+
+- the outer edges of the stack (half-way crossings of the smoothed profile between
+  the open beam and the first plateau inside), hence the centre and the projected
+  width; the width is t / cos(tilt), so thicknesses are scaled per trial tilt;
+- interior interfaces where neighbouring layers differ in attenuation (a least-squares
+  segmentation of the sharpest profile into as many plateaus as the scene has layers);
+- each layer's attenuation from its plateau level, inverting the spectrum-weighted
+  Beer-Lambert law with the model's own wavelength nodes;
+- the open-beam level (norm) and the per-profile sideways shifts (shift, drift).
+
+Tilt and SLD are not read off here: the global search (``_search``) scans them.
+Units: µm, mm, 1/m, as in the scene keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ._model import ForwardModel
+from ._parameters import FreeParameter
+from ._scene import Scene
+
+_EDGE_SIGNIFICANCE = 5.0  # smoothed drop below the open beam, in its noise, that marks the sample
+_MIN_RUN_UM = 12.0  # ... over at least this stretch
+_PLATEAU_UM = 20.0  # stretch inside an edge whose median gives the plateau level
+_REFRACTION_MARGIN_UM = 8.0  # refraction fringes beside an edge, beyond the penumbra
+_SEGMENT_BIN_UM = 4.0  # bin width of the segmentation ...
+_DESPIKE_UM = 15.0  # ... after a running median this wide removes the refraction spikes
+_STEP_SIGNIFICANCE = 4.0  # a segmented step counts when it exceeds this many noise units
+_FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """Starting values from the data, free name -> value (thicknesses at tilt 0: the
+    projected widths; a trial tilt multiplies them by cos(tilt))."""
+
+    values: dict[str, float]
+    thickness_names: tuple[str, ...]  # the free thicknesses among them
+
+
+def _smooth(values: np.ndarray, n: int) -> np.ndarray:
+    """Running mean over n pixels, edges padded with the end values."""
+    if n <= 1:
+        return values
+    padded = np.pad(values, (n // 2, n - 1 - n // 2), mode="edge")
+    return np.convolve(padded, np.ones(n) / n, mode="valid")
+
+
+def noise_sigma(T: np.ndarray) -> float:
+    """Noise of a profile from the scatter of neighbouring-pixel differences (robust)."""
+    differences = np.diff(T)
+    return float(np.median(np.abs(differences - np.median(differences))) / (0.6745 * math.sqrt(2.0)))
+
+
+def _open_level(T: np.ndarray) -> float:
+    """Open-beam level: the brighter of the two ends' medians (a tenth of the profile each)."""
+    n = max(3, len(T) // 10)
+    return float(max(np.median(T[:n]), np.median(T[-n:])))
+
+
+def _blur_um(scene: Scene, profile) -> float:
+    """Width (µm) over which an edge is spread: penumbra plus detector blur."""
+    instrument = scene.instruments[profile.instrument]
+    penumbra = profile.distance_mm * instrument.aperture_mm / instrument.aperture_distance_m
+    return penumbra + instrument.psf_fwhm_um + instrument.pixel_um
+
+
+def _crossing(x, drop, level, near, reach):
+    """x where drop crosses ``level`` nearest to index ``near`` within ``reach`` pixels."""
+    lo, hi = max(near - reach, 0), min(near + reach, len(drop) - 1)
+    above = drop[lo:hi + 1] >= level
+    changes = np.flatnonzero(above[1:] != above[:-1]) + lo
+    if len(changes) == 0:
+        return float(x[near])
+    i = changes[np.argmin(np.abs(changes - near))]
+    fraction = (level - drop[i]) / (drop[i + 1] - drop[i])
+    return float(x[i] + fraction * (x[i + 1] - x[i]))
+
+
+def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float, float] | None:
+    """(left, right) outer edges (µm) and the open-beam level of one profile; None if no sample."""
+    level = _open_level(T)
+    width = max(3, int(round(0.5 * blur_um / pixel_um)))
+    drop = level - _smooth(T, width)
+    noise = noise_sigma(T) / math.sqrt(width)
+    inside = drop > _EDGE_SIGNIFICANCE * max(noise, 1e-6)
+    run = max(3, int(round(_MIN_RUN_UM / pixel_um)))
+    counts = np.convolve(inside.astype(int), np.ones(run, int), mode="valid")
+    full = np.flatnonzero(counts == run)
+    if len(full) == 0:
+        return None
+    first, last = full[0], full[-1] + run - 1
+    gap = int(math.ceil((blur_um + _REFRACTION_MARGIN_UM) / pixel_um))
+    span = max(3, int(round(_PLATEAU_UM / pixel_um)))
+    left_level = np.median(drop[first + gap:first + gap + span]) if first + gap + span < len(T) else drop[first]
+    right_level = np.median(drop[max(last - gap - span, 0):max(last - gap, 1)])
+    reach = gap + run
+    left = _crossing(x_um, drop, 0.5 * left_level, first, reach)
+    right = _crossing(x_um, drop, 0.5 * right_level, last, reach)
+    return left, right, level
+
+
+def running_median(values: np.ndarray, n: int) -> np.ndarray:
+    """Running median over n pixels (odd), ends padded with the end values."""
+    if n <= 1:
+        return values
+    padded = np.pad(values, n // 2, mode="edge")
+    return np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * (n // 2) + 1), axis=1)
+
+
+def segment(values: np.ndarray, k: int) -> np.ndarray:
+    """Boundaries (k - 1,) (indices) of the least-squares split of values (n,) into k plateaus."""
+    n = len(values)
+    cs, cs2 = np.concatenate([[0], np.cumsum(values)]), np.concatenate([[0], np.cumsum(values ** 2)])
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    length = np.maximum(j - i, 1)
+    cost = np.where(j > i, cs2[j] - cs2[i] - (cs[j] - cs[i]) ** 2 / length, np.inf)  # cost[i, j]: values[i:j]
+    best = cost[0].copy()  # best[j]: values[:j] in one plateau
+    choices = []
+    for _ in range(k - 1):
+        total = best[:, None] + cost  # split at i
+        choice = np.argmin(total, axis=0)
+        best = total[choice, np.arange(n + 1)]
+        choices.append(choice)
+    bounds, end = [], n
+    for choice in reversed(choices):
+        end = choice[end]
+        bounds.append(end)
+    return np.array(bounds[::-1], int)
+
+
+def _attenuation(plateau: float, weight, path_um: float, offsets_per_m) -> float:
+    """mu (1/m) with sum(weight exp(-(mu + offsets) path)) = plateau (weights sum to 1)."""
+    if not 0 < plateau < 1:
+        return 0.0 if plateau >= 1 else math.inf
+    path_m = path_um * 1e-6
+    mu = -math.log(plateau) / path_m - float(np.dot(weight, offsets_per_m))
+    for _ in range(30):  # Newton: the left side is convex and decreasing in mu
+        terms = weight * np.exp(-(mu + offsets_per_m) * path_m)
+        value, slope = terms.sum() - plateau, -path_m * terms.sum()
+        mu -= value / slope
+    return max(mu, 0.0)
+
+
+def _wavelengths(model: ForwardModel, index: int):
+    """(wavelength nodes (l,), weights (l,), tabulated mu (l, n_layer) 1/m) of one profile."""
+    for group in model.groups:
+        if index in group.index:
+            row = group.index.index(index)
+            return (np.asarray(group.wavelength_A[row]), np.asarray(group.wavelength_weight[row]),
+                    np.asarray(group.mu_table_per_m[row]))
+    raise KeyError(index)
+
+
+def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
+             model: ForwardModel) -> Estimate:
+    """Starting values for the free parameters read off the profiles T (one array per profile).
+
+    Values the data do not show (tilt, SLD, depth, distances, absorption slope) are the
+    scene's, or NaN where the scene gives none.
+    """
+    values = {p.name: p.value for p in free}
+    profiles = scene.profiles
+    sample = scene.sample
+    found = []
+    for i, p in enumerate(profiles):
+        pixel = scene.instruments[p.instrument].pixel_um
+        edges = outer_edges(p.x_um, T[i], _blur_um(scene, p), pixel)
+        found.append(edges)
+    usable = [i for i, e in enumerate(found) if e is not None]
+    if not usable:
+        return Estimate(values, ())
+    sharpest = min(usable, key=lambda i: _blur_um(scene, profiles[i]))
+    offset = lambda i: profiles[i].shift_um + sample.drift_um_per_mm * profiles[i].distance_mm
+    centres = {i: 0.5 * (found[i][0] + found[i][1]) for i in usable}
+    left, right, _ = found[sharpest]
+    width = right - left
+    for p in free:
+        field, index = p.target
+        if field == "centre_um":
+            values[p.name] = centres[sharpest] - offset(sharpest)
+        elif field == "norm" and index[0] in usable:
+            values[p.name] = found[index[0]][2]
+        elif field == "background" and math.isnan(p.value):
+            values[p.name] = 0.0
+        elif field == "mu_per_m_per_A" and math.isnan(p.value):
+            values[p.name] = 0.0
+    centre = values.get("sample.centre_um", sample.centre_um)
+    for p in free:
+        field, index = p.target
+        if field == "shift_um" and index[0] in usable:
+            values[p.name] = centres[index[0]] - centre - sample.drift_um_per_mm * profiles[index[0]].distance_mm
+    if "sample.drift_um_per_mm" in values and len({profiles[i].distance_mm for i in usable}) > 1:
+        distance = np.array([profiles[i].distance_mm for i in usable])
+        shift = np.array([centres[i] - centre - profiles[i].shift_um for i in usable])
+        values["sample.drift_um_per_mm"] = float(np.polyfit(distance, shift, 1)[0])
+    thickness = _layer_thicknesses(scene, free, T[sharpest], profiles[sharpest], left, width)
+    names = []
+    for p in free:
+        field, index = p.target
+        if field == "thickness_um":
+            values[p.name] = float(thickness[index[0]])
+            names.append(p.name)
+    # Every profile sees the same stack, shifted by its own offset: its plateaus are placed
+    # with the sharpest profile's edges (the far profiles' edges are washed out).
+    placed = {i: (left + offset(i) - offset(sharpest), found[i][2]) for i in usable}
+    _attenuations(scene, free, T, placed, thickness, model, values)
+    return Estimate(values, tuple(names))
+
+
+def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float) -> np.ndarray:
+    """Thickness of every layer (n_layer,) µm at tilt 0, summing to the projected width.
+
+    Free thicknesses come from the segmentation where its steps are significant,
+    else from the scene's value, else an equal share of what the fixed layers leave.
+    """
+    layers = scene.sample.layers
+    free_thickness = {i for p in free if p.target[0] == "thickness_um" for i in p.target[1]}
+    given = np.array([l.thickness_um for l in layers], float)
+    if len(layers) == 1:
+        return np.array([width])
+    pixel = scene.instruments[profile.instrument].pixel_um
+    inside = (profile.x_um > left) & (profile.x_um < left + width)
+    per_bin = max(1, int(round(_SEGMENT_BIN_UM / pixel)))
+    despiked = running_median(T, max(1, int(round(_DESPIKE_UM / pixel))))[inside]
+    binned = despiked[: (len(despiked) // per_bin) * per_bin].reshape(-1, per_bin).mean(axis=1)
+    present = [i for i, l in enumerate(layers) if l.thickness_um > 0 or i in free_thickness
+               or math.isnan(l.thickness_um)]
+    found = np.full(len(layers), np.nan)
+    if len(binned) > 2 * len(present):
+        bounds = segment(binned, len(present))
+        edges = np.concatenate([[0], bounds, [len(binned)]])
+        levels = [binned[a:b].mean() for a, b in zip(edges[:-1], edges[1:])]
+        noise = noise_sigma(T) / math.sqrt(per_bin)
+        for n, i in enumerate(present):
+            steps = [abs(levels[n] - levels[m]) for m in (n - 1, n + 1) if 0 <= m < len(levels)]
+            if min(steps, default=0) > _STEP_SIGNIFICANCE * noise:
+                found[i] = (edges[n + 1] - edges[n]) * per_bin * pixel
+    # Tied layers (same_as) share one thickness: the mean of what was found for them.
+    roots = [l.same_as or l.name for l in layers]
+    for root in set(roots):
+        tied = [i for i, r in enumerate(roots) if r == root]
+        seen = found[tied][np.isfinite(found[tied])]
+        if len(seen) and len(seen) < len(tied) and len(tied) > 1:
+            found[tied] = np.nan  # only one side resolved: not trusted
+        elif len(seen):
+            found[tied] = seen.mean()
+    thickness = np.where(np.isin(np.arange(len(layers)), list(free_thickness)),
+                         np.where(np.isfinite(found), found, given), given)
+    unknown = ~np.isfinite(thickness)
+    known = thickness[~unknown].sum()
+    if unknown.any():
+        thickness[unknown] = max(width - known, 0.0) / unknown.sum()
+    adjustable = np.array([i in free_thickness for i in range(len(layers))])
+    rest = width - thickness[~adjustable].sum()
+    if adjustable.any() and thickness[adjustable].sum() > 0 and rest > 0:
+        thickness[adjustable] *= rest / thickness[adjustable].sum()
+    return thickness
+
+
+def _attenuations(scene: Scene, free, T, placed, thickness, model: ForwardModel, values) -> None:
+    """Free mu_per_m from each layer's plateau (median over the profiles), into ``values``.
+
+    placed: profile index -> (left outer edge µm, open-beam level) of the profiles used.
+    """
+    layers = scene.sample.layers
+    depth_um = scene.sample.depth_mm * 1e3
+    for p in free:
+        field, index = p.target
+        if field != "mu_per_m":
+            continue
+        layer = index[0]
+        estimates = []
+        for i, (left, level) in placed.items():
+            profile = scene.profiles[i]
+            start = left + thickness[:layer].sum()
+            stop = start + thickness[layer]
+            margin = _blur_um(scene, profile) + _REFRACTION_MARGIN_UM
+            plateau = (profile.x_um > start + margin) & (profile.x_um < stop - margin)
+            if plateau.sum() < 3:
+                continue
+            lam, weight, table = _wavelengths(model, i)
+            slope = layers[layer].mu_per_m_per_A
+            slope = 0.0 if math.isnan(slope) else slope
+            estimates.append(_attenuation(float(np.median(T[i][plateau])) / level, weight, depth_um,
+                                          slope * lam + table[:, layer]))
+        finite = [e for e in estimates if math.isfinite(e)]
+        if finite:
+            values[p.name] = float(np.median(finite))
+        elif math.isnan(values[p.name]):
+            values[p.name] = _FALLBACK_MU_PER_M
