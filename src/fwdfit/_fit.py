@@ -32,7 +32,7 @@ from ._plan import build_model
 from ._predict import Predictor
 from ._quality import Quality, assess, edge_half_width_um
 from ._scene import Scene, load_scene
-from ._search import SLD_FACTOR_MAX, SLD_VALUE_MAX, global_search
+from ._search import SLD_VALUE_MAX, global_search
 from ._starts import estimate, noise_sigma
 from ._uncertainty import band, central_differences, covariance, errors_and_correlation
 
@@ -158,15 +158,16 @@ class _Smoother:
 
 
 def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
-    """The scene the model's static plan is built from: free SLDs at the largest value the
-    global scan tries (kernel windows are sized for it), missing start values filled."""
+    """The scene the model's static plan is built from, missing start values filled: an
+    unknown SLD at the largest value the global scan tries (kernel windows are sized for
+    it; the plan's margin for free parameters covers the scan's factors on a known one)."""
     layers = list(scene.sample.layers)
     for p in free:
         field, index = p.target
         for i in index if field in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A") else ():
             value = getattr(layers[i], field)
             if field == "sld_e6_per_A2":
-                value = SLD_VALUE_MAX if math.isnan(value) else value * SLD_FACTOR_MAX
+                value = SLD_VALUE_MAX if math.isnan(value) else value
             elif math.isnan(value):
                 value = 1.0
             layers[i] = dataclasses.replace(layers[i], **{field: value})

@@ -63,8 +63,16 @@ def check_pixels(x_um: np.ndarray, pixel_um: float, where: str) -> None:
 
 
 def initial_params(scene: Scene, dtype=None) -> ModelParams:
-    """The scene's values as model parameters (shift 0 for every profile)."""
+    """The scene's values as model parameters (shift 0 for every profile).
+
+    Every value must be given: a start left out for a fit (NaN) is refused here.
+    """
     layers = scene.sample.layers
+    for layer in layers:
+        for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m"):
+            if math.isnan(getattr(layer, key)):
+                raise FwdfitError(f"{scene.path}: layer {layer.name!r}: {key} is missing (only a fit "
+                                  "may leave out the values it varies)")
     arr = lambda values: jnp.asarray(np.asarray(values, dtype=float), dtype=dtype)
     return ModelParams(
         thickness_um=arr([l.thickness_um for l in layers]),
@@ -87,11 +95,14 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
                              mu_per_m_per_A=l.mu_per_m_per_A,
                              table=l.material.mu_table if l.material else None) for l in layers] + [vacuum]
 
+    def name(layer):  # free parameters of tied layers (same_as) carry the first one's name
+        return layer.same_as or layer.name
+
     def is_free(medium, key):
-        return 0 < medium <= len(layers) and f"layers.{layers[medium - 1].name}.{key}" in free
+        return 0 < medium <= len(layers) and f"layers.{name(layers[medium - 1])}.{key}" in free
 
     kept = [0] + [i + 1 for i, l in enumerate(layers)
-                  if l.thickness_um > 0 or f"layers.{l.name}.thickness_um" in free] + [len(layers) + 1]
+                  if l.thickness_um > 0 or f"layers.{name(l)}.thickness_um" in free] + [len(layers) + 1]
     faces = []
     for left, right in zip(kept[:-1], kept[1:]):
         refracting = (media[left]["sld_e6_per_A2"] != media[right]["sld_e6_per_A2"]

@@ -19,9 +19,9 @@ import math
 import numpy as np
 
 SIGNIFICANCE = 5.0  # standard deviations of the noise expectation
-_LIMIT_OVERALL = 1.3  # reduced chi-square above which the whole fit fails (when significant)
-_LIMIT_PROFILE = 1.5
-_LIMIT_REGION = 2.0
+_LIMIT_OVERALL = 1.5  # reduced chi-square above which the whole fit fails (when significant)
+_LIMIT_PROFILE = 2.0
+_LIMIT_REGION = 3.0
 _MIN_BROAD_PIXELS = 30  # chi-square alone fails a region of at least this many pixels
 _MIN_EDGE_HALF_WIDTH_UM = 15.0
 _FRINGE_ANGLE_RAD = 3e-3  # reach of the refraction fringes: this angle times the distance

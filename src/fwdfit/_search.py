@@ -22,11 +22,11 @@ _TILT_SPACING_DEG = 0.1  # coarse tilt grid up to 1 degree ...
 _WIDE_TILT_SPACING_DEG = 0.25  # ... and beyond
 _TILT_REFINE_DEG = (-0.05, -0.025, 0.025, 0.05)  # around each of the best coarse tilts
 _TILT_MINIMA = 3  # coarse minima refined
-_SLD_FACTORS = (0.6, 0.8, 1.25, 1.6)  # scales of the SLD starts tried ...
+_SLD_FACTORS = (0.6, 0.8, 1.25, 1.5)  # scales of the SLD starts tried ...
 _SLD_VALUES = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0)  # ... or values tried where the scene gives none
-SLD_FACTOR_MAX, SLD_VALUE_MAX = max(_SLD_FACTORS), max(_SLD_VALUES)  # model windows are sized for these
+SLD_VALUE_MAX = max(_SLD_VALUES)  # model windows are sized for this where the scene gives no SLD
 _UNKNOWN_SLD = 2.0  # SLD of a layer without start until its scan
-_DISTINCT_TILT_DEG = 0.02  # candidates closer in tilt than this, with the same SLDs, are one
+_DISTINCT_TILT_DEG = 1.5 * _TILT_SPACING_DEG  # candidates closer in tilt than this share a basin
 _INSIDE = 1e-3  # candidates stay this fraction of the box inside two bounds
 
 
@@ -111,13 +111,16 @@ def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
     for i in order:
         if len(kept) == n_keep:
             break
-        if all(not _same(points[i], k, tilt, slds) for k in kept):
+        if all(not _same(points[i], k, free) for k in kept):
             kept.append(points[i])
     return np.array(kept), len(points)
 
 
-def _same(a: np.ndarray, b: np.ndarray, tilt, slds) -> bool:
-    """Whether two candidates would lead the local solver to the same place."""
-    close_tilt = tilt is None or abs(a[tilt] - b[tilt]) < _DISTINCT_TILT_DEG
-    close_sld = all(abs(a[j] - b[j]) < 0.05 * max(abs(b[j]), 0.1) for j in slds)
-    return close_tilt and close_sld
+def _same(a: np.ndarray, b: np.ndarray, free: tuple[FreeParameter, ...]) -> bool:
+    """Whether two candidates lie in one basin of the scan: tilts closer than the coarse
+    grid's spacing (when the tilt is free), else every value within 2 % or one typical step."""
+    names = [p.name for p in free]
+    if "sample.tilt_deg" in names:
+        j = names.index("sample.tilt_deg")
+        return abs(a[j] - b[j]) < _DISTINCT_TILT_DEG
+    return all(abs(x - y) <= max(0.02 * abs(y), p.step) for x, y, p in zip(a, b, free))

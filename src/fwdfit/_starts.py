@@ -85,20 +85,30 @@ def _crossing(x, drop, level, near, reach):
 
 
 def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float, float] | None:
-    """(left, right) outer edges (µm) and the open-beam level of one profile; None if no sample."""
+    """(left, right) outer edges (µm) and the open-beam level of one profile; None if no sample.
+
+    The profile is smoothed until the sample's drop below the open beam stands
+    _EDGE_SIGNIFICANCE noise units above noise at half its depth; the edges are where
+    the smoothed profile crosses half the depth of the plateau just inside them (a
+    symmetric smoothing keeps a step's half-way point).
+    """
     level = _open_level(T)
-    width = max(3, int(round(0.5 * blur_um / pixel_um)))
+    noise = max(noise_sigma(T), 1e-6)
+    depth = level - np.quantile(_smooth(T, 21), 0.3)  # a typical drop inside the sample
+    if not depth > _EDGE_SIGNIFICANCE * noise / math.sqrt(len(T)):
+        return None
+    needed = (2.0 * _EDGE_SIGNIFICANCE * noise / depth) ** 2
+    width = int(min(max(3, round(0.5 * blur_um / pixel_um), math.ceil(needed)), len(T) // 8))
     drop = level - _smooth(T, width)
-    noise = noise_sigma(T) / math.sqrt(width)
-    inside = drop > _EDGE_SIGNIFICANCE * max(noise, 1e-6)
-    run = max(3, int(round(_MIN_RUN_UM / pixel_um)))
+    inside = drop > 0.5 * depth
+    run = max(3, int(round(_MIN_RUN_UM / pixel_um)), width // 2)
     counts = np.convolve(inside.astype(int), np.ones(run, int), mode="valid")
     full = np.flatnonzero(counts == run)
     if len(full) == 0:
         return None
     first, last = full[0], full[-1] + run - 1
-    gap = int(math.ceil((blur_um + _REFRACTION_MARGIN_UM) / pixel_um))
-    span = max(3, int(round(_PLATEAU_UM / pixel_um)))
+    gap = int(math.ceil((blur_um + _REFRACTION_MARGIN_UM) / pixel_um)) + width // 2
+    span = max(3, int(round(_PLATEAU_UM / pixel_um)), width)
     left_level = np.median(drop[first + gap:first + gap + span]) if first + gap + span < len(T) else drop[first]
     right_level = np.median(drop[max(last - gap - span, 0):max(last - gap, 1)])
     reach = gap + run
