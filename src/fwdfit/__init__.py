@@ -4,6 +4,7 @@ The flow: scene file -> ``load_scene`` -> ``build_model`` + ``initial_params`` -
 ``ForwardModel(params)`` gives (T, T_att) per profile -> ``fit`` -> result.
 """
 
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._errors import FwdfitError as FwdfitError
 from ._fit import FitResult as FitResult
 from ._fit import FittedProfile as FittedProfile
@@ -25,6 +26,11 @@ from ._plan import initial_params as initial_params
 from ._radiograph import profile_from_stacks as profile_from_stacks
 from ._reference import ReferenceLayer as ReferenceLayer
 from ._reference import trace_reference as trace_reference
+from ._scene import FitSpec as FitSpec
+from ._scene import Instrument as Instrument
+from ._scene import Layer as Layer
+from ._scene import Profile as Profile
+from ._scene import Sample as Sample
 from ._scene import Scene as Scene
 from ._scene import load_scene as load_scene
 from ._simulate import SimulatedProfile as SimulatedProfile

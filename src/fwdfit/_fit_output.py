@@ -6,15 +6,15 @@ import json
 import math
 import os
 import platform
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ._errors import FwdfitError
 from ._fit import FitResult
 from ._scene import Scene
 from ._spectrum import GaussianLine
-from ._tables import write_columns
+from ._tables import staged_folder, write_columns
 
 
 def result_dict(result: FitResult) -> dict:
@@ -35,25 +35,42 @@ def result_dict(result: FitResult) -> dict:
         "chi2_per_start": [float(c) if np.isfinite(c) else None for c in result.chi2_per_start],
         "sigma_from_data": result.sigma_from_data,
         "converged": result.converged,
+        "accepted": result.accepted,
         "message": result.message,
+        "quality": quality_dict(result.quality),
+        "start_from_data": {name: (float(v) if np.isfinite(v) else None) for name, v in result.start.items()},
         "iterations": result.n_steps,
+        "model_evaluations": result.n_evaluations,
         "compile_time_s": result.compile_time_s,
-        "wall_time_s": result.wall_time_s,
+        "solve_time_s": result.wall_time_s,
+        "wall_time_s": result.compile_time_s + result.wall_time_s,
         "warnings": list(result.warnings),
         "versions": {"fwdfit": __version__, "jax": jax.__version__, "equinox": equinox.__version__,
                      "optimistix": optimistix.__version__, "python": platform.python_version()},
     }
 
 
+def quality_dict(quality) -> dict:
+    """The quality gate's verdict: passed, one line, chi-square per profile, failing regions."""
+    def region(r):
+        return {"profile": r.profile, "where": r.what, "x_from_um": r.x_from_um, "x_to_um": r.x_to_um,
+                "pixels": r.n, "chi2_reduced": r.chi2_reduced, "mean_residual_sigma": r.mean_z / max(r.n, 1) ** 0.5,
+                "runs_z": r.runs_z}
+
+    return {"passed": quality.passed, "summary": quality.summary(),
+            "chi2_reduced_per_profile": {r.profile: r.chi2_reduced for r in quality.profiles},
+            "failing": [region(r) for r in quality.failing]}
+
+
 def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
-    """Data with fit and residuals (top), attenuation-only fit against corrected data (bottom)."""
-    import matplotlib
+    """Data with fit and residuals (top), attenuation-only fit against corrected data (bottom).
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Drawn on a ``Figure`` of its own: pyplot's state and backend are left alone.
+    """
+    from matplotlib.figure import Figure
 
-    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(7, 8), sharex=True,
-                                              gridspec_kw={"height_ratios": [3, 1, 3]})
+    fig = Figure(figsize=(7, 8))
+    top, middle, bottom = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1, 3]})
     x = profile.x_um
     top.plot(x, profile.T, ".", ms=2, color="0.4", label="measured T")
     top.plot(x, profile.T_model, "-", lw=1, color="C3", label="fit T_model")
@@ -72,7 +89,6 @@ def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
     bottom.legend(loc="lower center", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def _toml_value(value) -> str:
@@ -100,7 +116,8 @@ def scene_toml(scene: Scene, relative_to: Path) -> str:
             lines.append(f"same_as = {_toml_value(layer.same_as)}")
             continue
         for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
-            lines.append(f"{key} = {_toml_value(getattr(layer, key))}")
+            if not math.isnan(getattr(layer, key)):  # NaN: a start left to the fit
+                lines.append(f"{key} = {_toml_value(getattr(layer, key))}")
     for name, inst in scene.instruments.items():
         lines += ["", "[instrument]" if name == "" else f"[instruments.{json.dumps(name)}]"]
         for key in ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel"):
@@ -138,18 +155,20 @@ def write_fit(result: FitResult, out_dir: Path) -> None:
     """Write result.json, <profile>.csv, <profile>.png and fitted_scene.toml into out_dir.
 
     Everything is written into a temporary folder first and moved into place, so an
-    error leaves ``out_dir`` without partial results.
+    error (a NaN or infinite value anywhere, which strict JSON cannot hold) or Ctrl-C
+    leaves ``out_dir`` without partial results.
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out_dir) as staging:
-        staging = Path(staging)
-        (staging / "result.json").write_text(json.dumps(result_dict(result), indent=2) + "\n")
+    try:
+        summary = json.dumps(result_dict(result), indent=2, allow_nan=False) + "\n"
+    except ValueError:
+        raise FwdfitError("result.json: a value is NaN or infinite; nothing written "
+                          "(please report this scene)") from None
+    with staged_folder(out_dir) as staging:
+        (staging / "result.json").write_text(summary)
         for p in result.profiles:
             write_columns(staging / f"{p.name}.csv", {
                 "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
                 "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
             plot_profile(staging / f"{p.name}.png", p)
         (staging / "fitted_scene.toml").write_text(scene_toml(result.scene, out_dir))
-        for item in staging.iterdir():
-            os.replace(item, out_dir / item.name)

@@ -33,8 +33,10 @@ _BROYDEN_STEPS = 4  # accepted steps with updated Jacobians before differences a
 
 @dataclasses.dataclass(frozen=True)
 class Solution:
-    """Where each problem ended: u (K, n), chi2 (K,), residuals (K, N) and their
-    Jacobian with respect to u (K, N, n) there, converged (K,), steps (K,)."""
+    """Where each problem ended: u (K, n), chi2 (K,), residuals (K, N), the solver's last
+    Jacobian with respect to u (K, N, n; differences, perhaps Broyden-updated since),
+    converged (K,) (False too for a problem stopped because a better one came within a
+    standard error of it), steps (K,)."""
 
     u: np.ndarray
     chi2: np.ndarray

@@ -4,15 +4,21 @@ Every model evaluation of a fit (the global search, the solver's trial points an
 finite differences, the uncertainties) goes through ``Predictor``: the model is
 traced and compiled once per geometry, with the data, the starts and the smoothing
 outside it. Compile time is what a user waits for on every new geometry, so the
-program holds one copy of the model and nothing else; JAX's persistent cache
-(``_cache``) keeps it between runs. On a CPU the program takes one parameter vector
-per call (a batch gains no parallelism there); on an accelerator it takes
-``rows_per_call`` vectors at once (vmap).
+program holds one copy of the model and nothing else. Between runs, JAX's persistent
+cache (``_cache``) keeps the compiled program, and the program itself is kept as a
+serialized ``jax.export`` module keyed by the static plan, so that a second run of a
+geometry neither traces nor compiles the model. On a CPU the program takes one
+parameter vector per call (a batch gains no parallelism there); on an accelerator it
+takes ``rows_per_call`` vectors at once (vmap).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import tempfile
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -48,10 +54,17 @@ class Predictor:
         if rows_per_call is None:
             rows_per_call = 1 if jax.default_backend() == "cpu" else 64
         self.rows_per_call, self.n_free = rows_per_call, n_free
-        self._args = (model, assemble)
         start = time.perf_counter()
+        dynamic, static = eqx.partition((model, assemble), eqx.is_array)
+        self._leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+
+        def run(leaves, values):
+            model, assemble = eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
+            return _predict_rows(model, assemble, values)
+
         example = jnp.zeros((rows_per_call, n_free))
-        self._compiled = eqx.filter_jit(_predict_rows).lower(model, assemble, example).compile()
+        program = _exported(run, self._leaves, example, f"{treedef}|{rows_per_call}|{n_free}")
+        self._compiled = jax.jit(program).lower(self._leaves, example).compile()
         self.compile_time_s = time.perf_counter() - start
         self.n_evaluations = 0
 
@@ -60,9 +73,40 @@ class Predictor:
         values = np.atleast_2d(np.asarray(values, dtype=float))
         n_rows, chunk = values.shape[0], self.rows_per_call
         padded = np.concatenate([values, np.repeat(values[-1:], -n_rows % chunk, axis=0)])
-        outputs = [self._compiled(*self._args, jnp.asarray(padded[i:i + chunk]))
+        outputs = [self._compiled(self._leaves, jnp.asarray(padded[i:i + chunk]))
                    for i in range(0, padded.shape[0], chunk)]
         self.n_evaluations += n_rows
         T = np.concatenate([np.asarray(o[0]) for o in outputs])[:n_rows]
         T_att = np.concatenate([np.asarray(o[1]) for o in outputs])[:n_rows]
         return T, T_att
+
+
+def _exported(run, leaves, example, plan: str):
+    """``run`` as a callable for jit: a stored ``jax.export`` module of it when the
+    persistent cache is on (made and stored on the first run), else ``run`` itself.
+
+    plan: text that, with the argument shapes and the versions, identifies the program.
+    """
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder:
+        return run
+    from . import __version__
+
+    shapes = ";".join(f"{x.shape}{x.dtype}" for x in [*leaves, example])
+    key = hashlib.sha256("|".join([__version__, jax.__version__, jax.default_backend(), plan, shapes])
+                         .encode()).hexdigest()[:32]
+    path = Path(folder) / "fwdfit-programs" / f"{key}.jaxexport"
+    try:
+        return jax.export.deserialize(bytearray(path.read_bytes())).call
+    except (OSError, ValueError):
+        pass
+    exported = jax.export.export(jax.jit(run))(leaves, example)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(handle, "wb") as stream:
+            stream.write(exported.serialize())
+        os.replace(temporary, path)
+    except OSError:
+        pass  # a read-only cache: the program is simply traced again next time
+    return exported.call

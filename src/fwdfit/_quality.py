@@ -23,6 +23,8 @@ _LIMIT_OVERALL = 1.5  # reduced chi-square above which the whole fit fails (when
 _LIMIT_PROFILE = 2.0
 _LIMIT_REGION = 3.0
 _MIN_BROAD_PIXELS = 30  # chi-square alone fails a region of at least this many pixels
+_WINDOW_PIXELS = (16, 64)  # sliding windows inside each region: a local misfit is not diluted
+_WINDOW_SIGNIFICANCE = 6.0  # ... judged at this significance (of order 100 windows per profile)
 _MIN_EDGE_HALF_WIDTH_UM = 15.0
 _FRINGE_ANGLE_RAD = 3e-3  # reach of the refraction fringes: this angle times the distance
 
@@ -39,6 +41,7 @@ class Region:
     chi2: float
     mean_z: float  # sum of the residuals / sqrt(n): a systematic offset
     runs_z: float  # (runs - expected) / sd; strongly negative: residuals in long runs of one sign
+    window: bool = False  # a sliding window inside a region: judged on systematic misfit only
 
     @property
     def chi2_reduced(self) -> float:
@@ -52,8 +55,9 @@ class Region:
         """Whether the excess is large (reduced chi-square above ``limit``) and significant:
         systematic (an offset, or runs of one sign) or, over a long stretch, chi-square alone.
         A few pixels off both ways (the finest refraction fringes) is not enough."""
-        systematic = abs(self.mean_z) > SIGNIFICANCE or self.runs_z < -SIGNIFICANCE
-        broad = self.chi2_z > SIGNIFICANCE and self.n >= _MIN_BROAD_PIXELS
+        significance = _WINDOW_SIGNIFICANCE if self.window else SIGNIFICANCE  # many windows are tried
+        systematic = abs(self.mean_z) > significance or self.runs_z < -significance
+        broad = self.chi2_z > SIGNIFICANCE and self.n >= _MIN_BROAD_PIXELS and not self.window
         return self.chi2_reduced > limit and (systematic or broad)
 
     def describe(self) -> str:
@@ -113,7 +117,7 @@ def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
     every = np.concatenate(z)
     overall = dataclasses.replace(_region("all", "all profiles", np.array([0.0]), every),
                                   n=max(len(every) - n_free, 1))
-    per_profile, regions = [], []
+    per_profile, regions, windows = [], [], []
     for name, x, r, faces, half in zip(names, x_um, z, interfaces, half_width_um):
         per_profile.append(_region(name, "whole profile", x, r))
         label = np.full(len(x), "", dtype=object)
@@ -128,11 +132,24 @@ def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
             where = label == what
             if where.sum() >= 5:
                 regions.append(_region(name, _plateau_name(what, faces), x[where], r[where]))
-    failing = [r for r in regions if r.fails(_LIMIT_REGION)] + [r for r in per_profile if r.fails(_LIMIT_PROFILE)]
+                windows.extend(_windows(name, _plateau_name(what, faces), x[where], r[where]))
+    failing = ([r for r in regions + windows if r.fails(_LIMIT_REGION)]
+               + [r for r in per_profile if r.fails(_LIMIT_PROFILE)])
     if overall.fails(_LIMIT_OVERALL):
         failing.append(overall)
     failing.sort(key=lambda r: -r.chi2_z)
     return Quality(not failing, overall, tuple(per_profile), tuple(regions), tuple(failing))
+
+
+def _windows(profile: str, what: str, x, z) -> list[Region]:
+    """Stretches of _WINDOW_PIXELS pixels sliding by half their width over one region; they
+    fail only on a systematic misfit (``Region.fails``), which noise rarely mimics."""
+    out = []
+    for width in _WINDOW_PIXELS:
+        for start in range(0, len(z) - width + 1, width // 2):
+            window = slice(start, start + width)
+            out.append(dataclasses.replace(_region(profile, what, x[window], z[window]), window=True))
+    return out
 
 
 def _plateau_name(label: str, faces) -> str:

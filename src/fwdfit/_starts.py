@@ -26,6 +26,7 @@ from ._model import ForwardModel
 from ._parameters import FreeParameter
 from ._scene import Scene
 
+_PROBE_PIXELS = 21  # running mean that gauges the sample's drop below the open beam
 _EDGE_SIGNIFICANCE = 5.0  # smoothed drop below the open beam, in its noise, that marks the sample
 _MIN_RUN_UM = 12.0  # ... over at least this stretch
 _PLATEAU_UM = 20.0  # stretch inside an edge whose median gives the plateau level
@@ -94,8 +95,8 @@ def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float,
     """
     level = _open_level(T)
     noise = max(noise_sigma(T), 1e-6)
-    depth = level - np.quantile(_smooth(T, 21), 0.3)  # a typical drop inside the sample
-    if not depth > _EDGE_SIGNIFICANCE * noise / math.sqrt(len(T)):
+    depth = level - np.quantile(_smooth(T, _PROBE_PIXELS), 0.3)  # a typical drop inside the sample
+    if not depth > _EDGE_SIGNIFICANCE * noise / math.sqrt(_PROBE_PIXELS):
         return None
     needed = (2.0 * _EDGE_SIGNIFICANCE * noise / depth) ** 2
     width = int(min(max(3, round(0.5 * blur_um / pixel_um), math.ceil(needed)), len(T) // 8))

@@ -1,0 +1,231 @@
+"""The fit's parts, each against an independent answer: starts read off the data,
+the least-squares solver, the quality gate, the compilation cache and missing starts.
+
+Fast: no fit of a whole scene here (those are in test_fit.py and test_fit_starts.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import numpy as np
+import pytest
+
+import fwdfit
+from fwdfit._cache import cache_dir
+from fwdfit._least_squares import levenberg_marquardt
+from fwdfit._quality import assess, runs_z
+from fwdfit._starts import _attenuation, outer_edges, segment
+
+PIXEL_UM = 2.4
+
+
+# --------------------------------------------------------------------------- starts read off the data
+
+
+def test_segment_finds_the_plateaus():
+    """Least-squares segmentation of three noisy plateaus returns their exact boundaries."""
+    rng = np.random.default_rng(0)
+    values = np.concatenate([np.full(40, 0.97), np.full(90, 0.95), np.full(30, 0.99)])
+    noisy = values + rng.normal(0.0, 0.003, values.shape)
+    np.testing.assert_array_equal(segment(noisy, 3), [40, 130])
+
+
+@pytest.mark.parametrize("noise", [0.002, 0.01])
+def test_outer_edges_of_a_blurred_step(noise):
+    """A 987 µm wide step of depth 2.5 %, blurred by 6 µm, with 0.2 % and 1 % noise: edges
+    within 1.5 µm of the truth (half-way points), open level within 3 noise / sqrt(n)."""
+    rng = np.random.default_rng(1)
+    x = -780.0 + (np.arange(650) + 0.5) * PIXEL_UM
+    left, right = -490.5, 496.5
+    # a step blurred by a uniform 6 µm penumbra, pixel-averaged: exact via the ramp integral
+    ramp = lambda u: np.clip((u + 3.0) / 6.0, 0.0, 1.0)
+    inside = ramp(x - left) * ramp(right - x)
+    T = 1.0 - 0.025 * inside + rng.normal(0.0, noise, x.shape)
+    found_left, found_right, level = outer_edges(x, T, blur_um=8.4, pixel_um=PIXEL_UM)
+    assert found_left == pytest.approx(left, abs=1.5)
+    assert found_right == pytest.approx(right, abs=1.5)
+    assert level == pytest.approx(1.0, abs=3 * noise / math.sqrt(65))
+
+
+def test_outer_edges_without_a_sample():
+    """Open beam only: no edges."""
+    T = 1.0 + np.random.default_rng(2).normal(0.0, 0.005, 500)
+    assert outer_edges(np.arange(500) * PIXEL_UM, T, 8.0, PIXEL_UM) is None
+
+
+def test_attenuation_inverts_the_spectrum_average():
+    """mu from a spectrum-averaged plateau: sum(w exp(-(mu + c) d)) = T solved for mu."""
+    weight = np.array([0.2, 0.5, 0.3])
+    offsets = np.array([1.0, 2.5, 4.0])  # 1/m, e.g. 1/v absorption at three wavelengths
+    for mu in (0.5, 9.06, 150.0):
+        plateau = float(np.sum(weight * np.exp(-(mu + offsets) * 2e-3)))
+        assert _attenuation(plateau, weight, 2000.0, offsets) == pytest.approx(mu, rel=1e-9)
+
+
+# --------------------------------------------------------------------------- solver
+
+
+def test_levenberg_marquardt_solves_many_problems_at_once():
+    """An exponential decay y = a exp(-b t) + c, noise-free, from four starts at once: the
+    best reaches (a, b, c) to 1e-6 with a Jacobian close to the exact one there; starts that come within
+    one standard error of a better one stop early (merged), unconverged."""
+    t = np.linspace(0.0, 4.0, 60)
+    truth = np.array([2.0, 1.3, 0.5])
+    data = truth[0] * np.exp(-truth[1] * t) + truth[2]
+
+    def residuals(rows):
+        return rows[:, :1] * np.exp(-rows[:, 1:2] * t) + rows[:, 2:3] - data
+
+    starts = np.array([[1.0, 0.5, 0.0], [3.0, 2.5, 1.0], [0.5, 1.0, 0.8], [2.2, 1.1, 0.4]])
+    solution = levenberg_marquardt(residuals, starts, np.ones(3), tolerance=1e-8, max_steps=200)
+    best = int(np.argmin(solution.chi2))
+    assert solution.converged[best]
+    np.testing.assert_allclose(solution.u[best], truth, atol=1e-6)
+    assert solution.chi2[best] < 1e-12
+    exact = np.stack([np.exp(-truth[1] * t), -truth[0] * t * np.exp(-truth[1] * t), np.ones_like(t)], axis=1)
+    np.testing.assert_allclose(solution.jacobian[best], exact, atol=1e-2)  # Broyden-updated
+    merged = ~solution.converged
+    assert merged.any() and np.all(solution.steps[merged] < solution.steps[best])
+
+
+def test_levenberg_marquardt_survives_failing_evaluations():
+    """Trial points where the model gives NaN are rejected, not accepted: sqrt model."""
+    t = np.linspace(1.0, 3.0, 20)
+    data = np.sqrt(0.3 * t)
+
+    def residuals(rows):
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(rows[:, :1] * t) - data
+
+    solution = levenberg_marquardt(residuals, np.array([[2.0]]), np.ones(1), tolerance=1e-9, max_steps=100)
+    assert solution.u[0, 0] == pytest.approx(0.3, rel=1e-7)
+
+
+# --------------------------------------------------------------------------- quality gate
+
+
+def test_runs_statistic():
+    """Alternating signs: many runs (positive z); two long blocks: few runs (negative z)."""
+    assert runs_z(np.tile([1.0, -1.0], 50)) > 5
+    assert runs_z(np.r_[np.ones(50), -np.ones(50)]) < -5
+    assert runs_z(np.ones(10)) == 0.0
+
+
+def _profile_residuals(rng, n=600):
+    x = -720.0 + np.arange(n) * PIXEL_UM
+    return x, rng.normal(0.0, 1.0, n)
+
+
+def test_quality_gate_accepts_noise_and_rejects_a_misfit():
+    """Pure noise over three profiles passes; 2 sigma of systematic misfit over 40 pixels
+    inside the sample (10 % of its width) fails, and the one line names the profile and
+    the region there."""
+    rng = np.random.default_rng(3)
+    profiles = [_profile_residuals(rng) for _ in range(3)]
+    faces = [[(-500.0, -495.0, "vacuum | Al"), (500.0, 505.0, "Al | vacuum")]] * 3
+    names = ["a", "b", "c"]
+    verdict = assess(names, [x for x, _ in profiles], [z for _, z in profiles], faces, [20.0] * 3, 5)
+    assert verdict.passed, verdict.summary()
+    x, z = profiles[1]
+    bad = z.copy()
+    bad[(x > 100) & (x < 196)] += 2.0
+    verdict = assess(names, [p[0] for p in profiles], [profiles[0][1], bad, profiles[2][1]], faces,
+                     [20.0] * 3, 5)
+    assert not verdict.passed
+    line = verdict.summary()
+    assert "profile b" in line and "inside Al" in line, line
+
+
+def test_quality_gate_tolerates_a_few_sharp_pixels():
+    """Three pixels 3 sigma off, of both signs, at an edge (finest fringes) do not fail."""
+    rng = np.random.default_rng(4)
+    x, z = _profile_residuals(rng)
+    z[np.searchsorted(x, 500.0) + np.array([0, 1, 2])] += np.array([3.0, -3.0, 3.0])
+    faces = [[(-500.0, -495.0, "vacuum | Al"), (500.0, 505.0, "Al | vacuum")]]
+    assert assess(["a"], [x], [z], faces, [20.0], 5).passed
+
+
+# --------------------------------------------------------------------------- cache and missing starts
+
+
+def test_cache_dir_from_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("FWDFIT_CACHE_DIR", str(tmp_path / "c"))
+    assert cache_dir() == tmp_path / "c"
+    for off in ("off", "", "0"):
+        monkeypatch.setenv("FWDFIT_CACHE_DIR", off)
+        assert cache_dir() is None
+        assert fwdfit.enable_compilation_cache() is None
+    monkeypatch.delenv("FWDFIT_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_dir() == tmp_path / "xdg" / "fwdfit"
+
+
+SCENE_WITHOUT_STARTS = """
+[sample]
+depth_mm = 2.0
+
+[[sample.layers]]
+name = "Al"
+sld_e6_per_A2 = 2.078
+
+[instrument]
+aperture = "circular"
+aperture_mm = 40.0
+aperture_distance_m = 5.5
+pixel_um = 2.4
+
+[spectra.l46]
+wavelength_A = 4.6
+fwhm_rel = 0.15
+
+[[profiles]]
+name = "line"
+distance_mm = 1.1
+spectrum = "l46"
+x_min_um = -600.0
+x_max_um = 600.0
+"""
+
+
+def test_free_values_may_have_no_start(tmp_path, capsys):
+    """thickness_um and mu_per_m left out: allowed when [fit] vary names them (NaN: the fit
+    estimates them), refused by simulate with one line, and refused when not varied."""
+    path = tmp_path / "scene.toml"
+    path.write_text(SCENE_WITHOUT_STARTS + '[fit]\nvary = ["layers.Al.thickness_um", "layers.Al.mu_per_m"]\n')
+    layer = fwdfit.load_scene(path).sample.layers[0]
+    assert math.isnan(layer.thickness_um) and math.isnan(layer.mu_per_m)
+    assert layer.sld_e6_per_A2 == 2.078
+    from fwdfit.cli import main
+
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 1
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("fwdfit: error:") and "thickness_um is missing" in line, line
+    assert not (tmp_path / "out").exists()
+    path.write_text(SCENE_WITHOUT_STARTS + '[fit]\nvary = ["layers.Al.mu_per_m"]\n')
+    with pytest.raises(fwdfit.FwdfitError, match="thickness_um: missing"):
+        fwdfit.load_scene(path)
+
+
+def test_compiled_model_is_kept_between_runs(tmp_path):
+    """With the cache on, a second Fitter of the same geometry loads the stored program
+    (no tracing, no compilation) and predicts the same numbers to the last bit."""
+    path = tmp_path / "scene.toml"
+    rows = np.column_stack([-600 + (np.arange(500) + 0.5) * PIXEL_UM, np.ones(500), np.full(500, 0.01)])
+    np.savetxt(tmp_path / "line.csv", rows, delimiter=",", header="x_um,T,T_err", comments="")
+    path.write_text(SCENE_WITHOUT_STARTS.replace('x_min_um = -600.0\nx_max_um = 600.0', 'file = "line.csv"')
+                    .replace('sld_e6_per_A2 = 2.078', 'sld_e6_per_A2 = 2.078\nthickness_um = 1000.0\nmu_per_m = 9.0')
+                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n')
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        fwdfit.enable_compilation_cache(tmp_path / "cache")
+        first = fwdfit.Fitter(path)
+        stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.jaxexport"))
+        assert len(stored) == 1
+        second = fwdfit.Fitter(path)
+        values = np.array([[990.0], [1010.0]])
+        np.testing.assert_array_equal(first.predict(values)[0], second.predict(values)[0])
+        assert second.compile_time_s < first.compile_time_s
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
