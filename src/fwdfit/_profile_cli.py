@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import tempfile
 from pathlib import Path
 
 from ._errors import FwdfitError
 from ._radiograph import (COMBINE_METHODS, RadiographProfile, Roi, plot_radiograph_png,
                           profile_from_stacks, write_profile_csv)
+from ._tables import check_paths, temporary_path
 
 
 def parse_roi(text: str, option: str) -> Roi:
@@ -61,20 +61,11 @@ def add_profile_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
 def _write_outputs(profile: RadiographProfile, csv_path: Path, png_path: Path) -> None:
     """Write the table and the plot to temporary files, then rename both into place."""
     csv_path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = []
-    try:
-        for suffix in (".csv", ".png"):
-            handle, name = tempfile.mkstemp(suffix=suffix, prefix=".fwdfit-",
-                                            dir=csv_path.parent)
-            os.close(handle)
-            temporary.append(Path(name))
-        write_profile_csv(temporary[0], profile.x_um, profile.T, profile.T_err)
-        plot_radiograph_png(temporary[1], profile.image, profile.roi)
-        os.replace(temporary[0], csv_path)
-        os.replace(temporary[1], png_path)
-    finally:
-        for path in temporary:
-            path.unlink(missing_ok=True)
+    with temporary_path(csv_path) as csv_temp, temporary_path(png_path) as png_temp:
+        write_profile_csv(csv_temp, profile.x_um, profile.T, profile.T_err)
+        plot_radiograph_png(png_temp, profile.image, profile.roi)
+        os.replace(csv_temp, csv_path)
+        os.replace(png_temp, png_path)
 
 
 def run_profile(args: argparse.Namespace) -> None:
@@ -83,6 +74,8 @@ def run_profile(args: argparse.Namespace) -> None:
     dose_roi = None if args.dose_roi is None else parse_roi(args.dose_roi, "--dose-roi")
     if args.out.suffix.lower() != ".csv":
         raise FwdfitError(f"--out must name a .csv file, got {args.out}")
+    check_paths(out_file=args.out)
+    check_paths(out_file=args.out.with_suffix(".png"))
     profile = profile_from_stacks(args.sample, args.open, args.dark, roi, args.pixel_um,
                                   combine=args.combine, rotate=args.rotate, dose_roi=dose_roi)
     _write_outputs(profile, args.out, args.out.with_suffix(".png"))

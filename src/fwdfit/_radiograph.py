@@ -16,8 +16,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import glob
+import logging
 import math
 import os
+import struct
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -29,6 +31,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from ._errors import FwdfitError
+from ._tables import check_finite
 
 TIFF_SUFFIXES = (".tif", ".tiff")
 COMBINE_METHODS = ("median", "mean")
@@ -128,13 +131,73 @@ def _first_line(exc: BaseException) -> str:
 
 @contextmanager
 def _open_tiff(path: Path) -> Iterator[tifffile.TiffFile]:
-    """Open a TIFF file, turning read errors into a FwdfitError that names it."""
+    """Open a TIFF file, turning read errors into a FwdfitError that names it.
+
+    tifffile's own log (e.g. "invalid page offset" in a file cut short) is kept off the
+    terminal meanwhile: :func:`_check_complete` reports such files in one line.
+    """
+    quiet = logging.NullHandler()
+    logging.getLogger("tifffile").addHandler(quiet)
     try:
-        tif = tifffile.TiffFile(path)
-    except Exception as exc:  # tifffile raises many types (OSError, struct.error, ...)
-        raise FwdfitError(f"cannot read TIFF file {path}: {_first_line(exc)}") from None
-    with tif:
-        yield tif
+        try:
+            tif = tifffile.TiffFile(path)
+        except Exception as exc:  # tifffile raises many types (OSError, struct.error, ...)
+            raise FwdfitError(f"cannot read TIFF file {path}: {_first_line(exc)}") from None
+        with tif:
+            yield tif
+    finally:
+        logging.getLogger("tifffile").removeHandler(quiet)
+
+
+def _declared_frames(tif: tifffile.TiffFile, first: tifffile.TiffPage) -> int | None:
+    """Frames (pages like ``first``) the file's metadata declares (ImageJ ``images=``,
+    tifffile's shapes), if it declares any."""
+    try:
+        if tif.imagej_metadata and "images" in tif.imagej_metadata:
+            return int(tif.imagej_metadata["images"])
+        shapes = [m["shape"] for m in tif.shaped_metadata or () if "shape" in m]
+        return sum(math.prod(shape) for shape in shapes) // first.size if shapes else None
+    except Exception:  # unreadable metadata declares nothing
+        return None
+
+
+def _chain_continues(tif: tifffile.TiffFile) -> bool:
+    """Whether the last page read points to a further page (one beyond the file's end)."""
+    handle = tif.filehandle
+    try:
+        handle.seek(tif.pages.next_page_offset)
+        pointer = struct.unpack(tif.tiff.offsetformat, handle.read(tif.tiff.offsetsize))[0]
+    except (struct.error, OSError, TypeError, tifffile.TiffFileError):  # pointer cut off
+        return True
+    return pointer != 0
+
+
+def _check_complete(tif: tifffile.TiffFile, path: Path) -> None:
+    """FwdfitError if the file ends before its frames do, saying how many are complete.
+
+    A multi-page file cut short loses its last pages silently in tifffile (the page
+    chain points past the end, or into a page's cut-off header); a page cut short has
+    data past the end. The frames expected are the pages chained (plus the missing
+    one) or the frames the metadata declares, whichever is more.
+    """
+    size = tif.filehandle.size
+    pages, cut = [], False
+    try:
+        for page in tif.pages:
+            pages.append(page)
+    except Exception:  # tifffile: "corrupted IFD structure" and the like
+        cut = True
+    complete = sum(max((o + n for o, n in zip(page.dataoffsets, page.databytecounts)),
+                       default=size + 1) <= size for page in pages)
+    broken = cut or _chain_continues(tif)
+    chained = len(pages) + broken
+    declared = (_declared_frames(tif, pages[0]) if pages else None) or 0
+    expected = max(chained, declared)
+    if complete < expected:
+        least = "at least " if broken and chained >= declared else ""
+        raise FwdfitError(f"TIFF file {path} is cut short or corrupt: {complete} of "
+                          f"{least}{expected} frames complete ({size} bytes); refusing to "
+                          "use fewer frames")
 
 
 def _page_shape(page: tifffile.TiffPage, path: Path, index: int) -> tuple[int, int]:
@@ -154,6 +217,7 @@ def frame_layout(files: Sequence[Path]) -> tuple[int, tuple[int, int]]:
     n_frames, shape, first = 0, None, None
     for path in files:
         with _open_tiff(path) as tif:
+            _check_complete(tif, path)
             for index, page in enumerate(tif.pages):
                 page_shape = _page_shape(page, path, index)
                 if shape is None:
@@ -623,7 +687,8 @@ def profile_from_stacks(sample: str | os.PathLike, open_beam: str | os.PathLike,
 
 def write_profile_csv(path: str | os.PathLike, x_um: np.ndarray, T: np.ndarray,
                       T_err: np.ndarray) -> None:
-    """Write a profile table with header ``x_um,T,T_err``; arrays ``(n,)``."""
+    """Write a profile table with header ``x_um,T,T_err``; arrays ``(n,)``, finite."""
+    check_finite({"x_um": x_um, "T": T, "T_err": T_err}, os.fspath(path))
     table = np.column_stack([x_um, T, T_err])
     np.savetxt(path, table, delimiter=",", header="x_um,T,T_err", comments="", fmt="%.10g")
 

@@ -1,6 +1,7 @@
-"""Scene files (TOML, ../docs/SCENE.md): parsing and validation into frozen specs.
+"""Scene files (TOML, docs/SCENE.md): parsing and validation into frozen specs.
 
-Every error names the file and the key and is one line (``FwdfitError``).
+Every error names the file and the key and is one line (``FwdfitError``). Every number
+is checked against the validity domain of ``_limits`` (docs/SCENE.md, "Validity domain").
 Units are those of the keys: µm, mm, m, degrees, Å, 1e-6 Å^-2, 1/m.
 """
 
@@ -14,6 +15,8 @@ from typing import Any
 import numpy as np
 
 from ._errors import FwdfitError
+from ._limits import (DOMAIN, MAX_DIVERGENCE, MAX_PIXELS, MAX_PSF_PIXELS, SEE, check_domain,
+                      check_domain_rows)
 from ._materials import MaterialConstants, constants_from_formula, constants_from_ncrystal
 from ._spectrum import GaussianLine, Spectrum, TabulatedSpectrum
 from ._tables import read_columns
@@ -138,6 +141,8 @@ class _Reader:
         value = self.table[name]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             self.fail(self.key(name), f"must be a finite number, got {value!r}")
+        if name in DOMAIN:
+            check_domain(name, value, f"{self.path}: {self.key(name)}")
         if positive and value <= 0:
             self.fail(self.key(name), f"must be positive, got {value}")
         if minimum is not None and value < minimum:
@@ -171,6 +176,10 @@ def load_scene(path: str | Path) -> Scene:
             document = tomllib.load(stream)
     except FileNotFoundError:
         raise FwdfitError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise FwdfitError(f"{path}: is a folder, not a scene file") from None
+    except UnicodeDecodeError:
+        raise FwdfitError(f"{path}: not a text TOML file (not UTF-8)") from None
     except tomllib.TOMLDecodeError as error:
         raise FwdfitError(f"{path}: not valid TOML ({error})") from None
     top = _Reader(path, document, "", _TOP_KEYS)
@@ -183,7 +192,48 @@ def load_scene(path: str | Path) -> Scene:
     fit = _fit(path, document.get("fit", {}))
     model = _Reader(path, document.get("model", {}), "model", {"accuracy"})
     accuracy = model.number("accuracy", DEFAULT_ACCURACY, positive=True)
+    _check_combinations(path, sample, instruments, profiles)
     return Scene(sample, instruments, spectra, profiles, fit, accuracy, path)
+
+
+def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instrument],
+                        profiles: tuple[Profile, ...]) -> None:
+    """The validity domain's limits on combinations of keys and on constants derived from
+    a material: each layer's SLD and mu, each instrument's blur against its pixel, each
+    profile's detector outside the sample and the aperture's angular size (paraxial).
+
+    The tilted stack reaches ``reach`` mm up- and downstream of its centre: half its depth
+    plus half its width times |sin(tilt)| (the model's interfaces span the depth about
+    centres moved along the beam by the tilt; a 50 mm wide stack tilted by 0.24° reaches
+    0.1 mm further than its depth alone).
+    """
+    for index, layer in enumerate(sample.layers):
+        if layer.material is not None and layer.same_as is None:
+            for key in ("sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
+                check_domain(key, getattr(layer, key),
+                             f"{path}: sample.layers[{index}]: {key} of its material")
+    for name, instrument in instruments.items():
+        if instrument.psf_fwhm_um > MAX_PSF_PIXELS * instrument.pixel_um:
+            raise FwdfitError(
+                f"{path}: {'instruments.' + name if name else 'instrument'}.psf_fwhm_um: "
+                f"{instrument.psf_fwhm_um:g} is more than {MAX_PSF_PIXELS:g} pixels of "
+                f"{instrument.pixel_um:g} um ({SEE})")
+    tilt = math.radians(sample.tilt_deg)
+    width_mm = 1e-3 * sum(t for t in (layer.thickness_um for layer in sample.layers) if math.isfinite(t))
+    reach = 0.5 * sample.depth_mm + 0.5 * width_mm * abs(math.sin(tilt))
+    for index, profile in enumerate(profiles):
+        where = f"{path}: profiles[{index}].distance_mm"
+        if profile.distance_mm <= reach:
+            raise FwdfitError(f"{where}: {profile.distance_mm:g} puts the detector inside the "
+                              f"sample (needs > {reach:g}: depth_mm / 2 + half the "
+                              f"stack's width x |sin(tilt)|; {SEE})")
+        instrument = instruments[profile.instrument]
+        to_aperture_mm = 1e3 * instrument.aperture_distance_m - profile.distance_mm - reach
+        if not instrument.aperture_mm <= MAX_DIVERGENCE * to_aperture_mm:
+            raise FwdfitError(
+                f"{where}: {profile.distance_mm:g} leaves {to_aperture_mm:g} mm from the sample "
+                f"to the aperture, which then spans more than {MAX_DIVERGENCE:g} rad "
+                f"(aperture_mm = {instrument.aperture_mm:g}; the model is paraxial; {SEE})")
 
 
 def _sample(path: Path, table: Any) -> Sample:
@@ -241,14 +291,14 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer]) -> Layer:
 
 
 def _material(reader: _Reader) -> MaterialConstants:
+    key = "ncrystal" if reader.has("ncrystal") else "material"
+    name = reader.string(key)  # the reader's own errors name the file already
+    density = None if key == "ncrystal" else reader.number("density_g_cm3", positive=True)
     try:
-        if reader.has("ncrystal"):
-            return constants_from_ncrystal(reader.string("ncrystal"))
-        formula = reader.string("material")
-        density = reader.number("density_g_cm3", positive=True)
-        return constants_from_formula(formula, density)
+        if density is None:
+            return constants_from_ncrystal(name)
+        return constants_from_formula(name, density)
     except FwdfitError as error:
-        key = "ncrystal" if reader.has("ncrystal") else "material"
         reader.fail(reader.key(key), str(error))
 
 
@@ -285,14 +335,15 @@ def _spectra(path: Path, table: Any) -> dict[str, Spectrum]:
     for name, entry in table.items():
         where = f"spectra.{name}"
         reader = _Reader(path, entry, where, {"file", "wavelength_A", "fwhm_rel"})
-        try:
-            if reader.has("file"):
-                table = path.parent / reader.string("file")
-                columns = read_columns(table, ["lambda_A", "weight"])
-                spectra[name] = TabulatedSpectrum(columns["lambda_A"], columns["weight"], table)
-            else:
-                spectra[name] = GaussianLine(reader.number("wavelength_A", positive=True),
-                                             reader.number("fwhm_rel", minimum=0.0))
+        if not reader.has("file"):  # the domain's limits hold GaussianLine's own checks
+            spectra[name] = GaussianLine(reader.number("wavelength_A", positive=True),
+                                         reader.number("fwhm_rel", minimum=0.0))
+            continue
+        table = path.parent / reader.string("file")
+        try:  # the table's errors name the table; this names the scene and key too
+            columns = read_columns(table, ["lambda_A", "weight"])
+            check_domain_rows("lambda_A", columns["lambda_A"], f"{table}: lambda_A")
+            spectra[name] = TabulatedSpectrum(columns["lambda_A"], columns["weight"], table)
         except FwdfitError as error:
             reader.fail(where, str(error))
     return spectra
@@ -307,6 +358,9 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         name = reader.string("name")
         if any(p.name == name for p in profiles):
             reader.fail(reader.key("name"), f"duplicate profile name {name!r}")
+        if name in (".", "..") or any(char in name for char in "/\\\0") or len(name.encode()) > 200:
+            reader.fail(reader.key("name"), f"{name!r} cannot name an output file "
+                        "(no / or \\, at most 200 bytes)")
         spectrum = reader.string("spectrum")
         if spectrum not in spectra:
             reader.fail(reader.key("spectrum"), f"no [spectra.{spectrum}] in the scene")
@@ -323,11 +377,18 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                 reader.fail(reader.key("file"), "T_err must be > 0 everywhere")
             if np.any(np.diff(x_um) <= 0):
                 reader.fail(reader.key("file"), "x_um must increase")
+            if len(x_um) > MAX_PIXELS:
+                reader.fail(reader.key("file"), f"{len(x_um)} rows, more than {MAX_PIXELS} ({SEE})")
+            for column, values in columns.items():
+                check_domain_rows(column, values, f"{path}: {reader.key('file')}: {file}: {column}")
         else:
             x_min, x_max = reader.number("x_min_um"), reader.number("x_max_um")
             n_pixels = int(math.floor((x_max - x_min) / pixel_um + 1e-6))
             if n_pixels < 2:
                 reader.fail(reader.key("x_max_um"), "the pixel grid needs x_max_um > x_min_um + 2 pixels")
+            if n_pixels > MAX_PIXELS:
+                reader.fail(reader.key("x_max_um"),
+                            f"the pixel grid has {n_pixels} pixels, more than {MAX_PIXELS} ({SEE})")
             x_um = x_min + (np.arange(n_pixels) + 0.5) * pixel_um
         profiles.append(Profile(
             name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,

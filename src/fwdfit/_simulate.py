@@ -8,9 +8,10 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 
+from ._limits import check_domain
 from ._plan import build_model, initial_params
 from ._scene import Scene, load_scene
-from ._tables import write_columns
+from ._tables import check_finite, staged_folder, write_columns
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,18 +27,24 @@ class SimulatedProfile:
 def simulate(scene: Scene | str | Path, accuracy: float | None = None) -> list[SimulatedProfile]:
     """T and T_att for every profile of a scene (a ``Scene`` or a scene file path).
 
-    accuracy: target RMS error in T; default the scene's ``[model] accuracy``.
+    accuracy: target RMS error in T, in the validity domain [1e-5, 0.1]; default the
+    scene's ``[model] accuracy``. FwdfitError if any value comes out NaN or infinite.
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
+    if accuracy is not None:
+        accuracy = check_domain("accuracy", accuracy, "accuracy")
     model = build_model(scene, accuracy)
     T, T_att = eqx.filter_jit(model)(initial_params(scene))
-    return [SimulatedProfile(p.name, p.x_um, np.asarray(t), np.asarray(a))
-            for p, t, a in zip(scene.profiles, T, T_att)]
+    profiles = [SimulatedProfile(p.name, p.x_um, np.asarray(t), np.asarray(a))
+                for p, t, a in zip(scene.profiles, T, T_att)]
+    for p in profiles:
+        check_finite({"T": p.T, "T_att": p.T_att}, f"{scene.path}: profile {p.name!r}")
+    return profiles
 
 
 def write_simulation(profiles: list[SimulatedProfile], out_dir: Path) -> None:
-    """Write ``out_dir/<name>.csv`` with columns x_um,T,T_att for each profile."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for p in profiles:
-        write_columns(out_dir / f"{p.name}.csv", {"x_um": p.x_um, "T": p.T, "T_att": p.T_att})
+    """Write ``out_dir/<name>.csv`` with columns x_um,T,T_att for each profile (all or none)."""
+    with staged_folder(out_dir) as staging:
+        for p in profiles:
+            write_columns(staging / f"{p.name}.csv", {"x_um": p.x_um, "T": p.T, "T_att": p.T_att})

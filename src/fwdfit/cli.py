@@ -1,7 +1,8 @@
 """The ``fwdfit`` command line: a thin shell over the library (no physics here).
 
 Every command exits 0 on success and 1 with a one-line ``fwdfit: error: ...`` on
-bad input, writing nothing.
+bad input (options included), writing nothing; Ctrl-C prints ``fwdfit: interrupted``
+and exits 130, also writing nothing. Outputs and inputs are checked before any work.
 """
 
 from __future__ import annotations
@@ -12,8 +13,47 @@ import warnings
 from pathlib import Path
 
 from ._errors import FwdfitError
+from ._limits import domain_problem
 from ._paganin_scene import MODES as PAGANIN_MODES
 from ._profile_cli import add_profile_parser
+from ._tables import check_paths, staged_folder
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with fwdfit's convention for bad options: one line, exit status 1."""
+
+    def error(self, message):
+        raise FwdfitError(message)
+
+
+def _in_domain(key: str):
+    """An argparse ``type``: a number inside the validity domain of ``key`` (the same
+    check as the scene key of that name); argparse names the option in its message."""
+    def parse(text: str) -> float:
+        value = float(text)  # a ValueError: argparse says "invalid <key> value: ..."
+        problem = domain_problem(key, value)
+        if problem:
+            raise argparse.ArgumentTypeError(problem)
+        return value
+
+    parse.__name__ = key
+    return parse
+
+
+def _quiet_xla() -> None:
+    """Keep XLA's own C++ log (its "Very slow compile?" alarm, ...) off the terminal.
+
+    jax reads TF_CPP_MIN_LOG_LEVEL only when it is imported (before this module), so the
+    level is set through jax's config instead (an option of recent jax versions).
+    """
+    import jax
+
+    try:
+        jax.config.update("jax_logging_level", "CRITICAL")
+    except AttributeError:  # an older jax: its log stays on
+        pass
 
 
 def _enable_float64() -> None:
@@ -26,6 +66,7 @@ def _run_simulate(args) -> None:
     from ._scene import load_scene
     from ._simulate import simulate, write_simulation
 
+    check_paths([args.scene], out_dir=args.out)
     _enable_float64()
     scene = load_scene(args.scene)
     profiles = simulate(scene, args.accuracy)
@@ -38,14 +79,16 @@ def _run_paganin(args) -> None:
     from ._scene import load_scene
     from ._tables import write_columns
 
+    check_paths([args.scene], out_dir=args.out)
     scene = load_scene(args.scene)
     profiles = paganin_profiles(scene, material=args.material, b_factor=args.b_factor,
                                 mode=args.mode)
     layer = paganin_layer(scene, args.material).name
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    for p in profiles:
-        write_columns(out / f"{p.name}.csv", {"x_um": p.x_um, "T": p.T, "T_filtered": p.T_filtered})
+    with staged_folder(out) as staging:
+        for p in profiles:
+            write_columns(staging / f"{p.name}.csv",
+                          {"x_um": p.x_um, "T": p.T, "T_filtered": p.T_filtered})
     chosen = "as named" if args.material else "the thickest layer; --material to choose"
     print(f"filter constants of layer {layer} ({chosen}), b_factor {args.b_factor:g}, mode {args.mode}")
     for p in profiles:
@@ -58,6 +101,7 @@ def _run_fit(args) -> int:
     from ._fit_output import write_fit
     from ._scene import load_scene
 
+    check_paths([args.scene], out_dir=args.out)
     _enable_float64()
     scene = load_scene(args.scene)
     if args.starts < 1:
@@ -75,12 +119,12 @@ def _run_fit(args) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fwdfit", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     simulate = commands.add_parser("simulate", help="predict T and T_att for every profile of a scene")
     simulate.add_argument("scene", help="scene file (TOML)")
     simulate.add_argument("--out", required=True, help="output folder for <profile>.csv")
-    simulate.add_argument("--accuracy", type=float, default=None,
+    simulate.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
                           help="target RMS error in T (default: the scene's, else 1e-3)")
     simulate.set_defaults(handler=_run_simulate)
     paganin = commands.add_parser(
@@ -90,7 +134,7 @@ def _parser() -> argparse.ArgumentParser:
                     "DIR/<profile>.csv with columns x_um,T,T_filtered.")
     paganin.add_argument("scene", help="scene file (TOML) whose profiles are measured (file =)")
     paganin.add_argument("--out", required=True, metavar="DIR", help="output folder for <profile>.csv")
-    paganin.add_argument("--b-factor", type=float, default=1.0, metavar="F",
+    paganin.add_argument("--b-factor", type=_in_domain("b_factor"), default=1.0, metavar="F",
                          help="multiplies the layer's SLD in tau (default 1; the paper needed 40)")
     paganin.add_argument("--material", metavar="LAYER", default=None,
                          help="layer whose constants the filter uses (default: the thickest)")
@@ -104,7 +148,8 @@ def _parser() -> argparse.ArgumentParser:
                                           "solver did not converge; 1: bad input.")
     fit.add_argument("scene", help="scene file (TOML) with measured profiles and a [fit] table")
     fit.add_argument("--out", required=True, help="output folder")
-    fit.add_argument("--accuracy", type=float, default=None, help="model accuracy (RMS error in T)")
+    fit.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
+                     help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
     fit.add_argument("--starts", type=int, default=1, help="starting points run in parallel (default 1)")
     fit.add_argument("--seed", type=int, default=0, help="seed for the random starting points")
     fit.add_argument("--max-steps", type=int, default=200, help="solver steps per stage (default 200)")
@@ -115,13 +160,18 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    """Run one command; returns its exit status: 0, 1 bad input, 130 interrupted (fit: more)."""
     try:
+        args = _parser().parse_args(argv)
+        _quiet_xla()
         status = args.handler(args)
     except (FwdfitError, OSError) as error:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"fwdfit: error: {message}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("fwdfit: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return status or 0
 
 
