@@ -32,10 +32,11 @@ def test_segment_finds_the_plateaus():
     np.testing.assert_array_equal(segment(noisy, 3), [40, 130])
 
 
-@pytest.mark.parametrize("noise", [0.002, 0.01])
-def test_outer_edges_of_a_blurred_step(noise):
+@pytest.mark.parametrize("noise,tolerance_um", [(0.002, 1.5), (0.01, 5.0)])
+def test_outer_edges_of_a_blurred_step(noise, tolerance_um):
     """A 987 µm wide step of depth 2.5 %, blurred by 6 µm, with 0.2 % and 1 % noise: edges
-    within 1.5 µm of the truth (half-way points), open level within 3 noise / sqrt(n)."""
+    within 1.5 and 5 µm of the truth (half-way points; at 1 % noise the filter must be 55 µm
+    wide to see the step), open level within 3 noise / sqrt(n)."""
     rng = np.random.default_rng(1)
     x = -780.0 + (np.arange(650) + 0.5) * PIXEL_UM
     left, right = -490.5, 496.5
@@ -44,8 +45,8 @@ def test_outer_edges_of_a_blurred_step(noise):
     inside = ramp(x - left) * ramp(right - x)
     T = 1.0 - 0.025 * inside + rng.normal(0.0, noise, x.shape)
     found_left, found_right, level = outer_edges(x, T, blur_um=8.4, pixel_um=PIXEL_UM)
-    assert found_left == pytest.approx(left, abs=1.5)
-    assert found_right == pytest.approx(right, abs=1.5)
+    assert found_left == pytest.approx(left, abs=tolerance_um)
+    assert found_right == pytest.approx(right, abs=tolerance_um)
     assert level == pytest.approx(1.0, abs=3 * noise / math.sqrt(65))
 
 

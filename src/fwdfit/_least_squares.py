@@ -28,6 +28,8 @@ _TINY_CURVATURE = 1e-12
 _INITIAL_DAMPING = 1e-3  # times the largest curvature
 _MAX_DAMPING = 1e14  # a problem whose damping exceeds this cannot improve: it stops
 _MIN_GAIN_RATIO = 1e-4  # a step is accepted when it achieves this share of the predicted decrease
+_GRACE_STEPS = 5  # steps every problem takes before it can be abandoned ...
+_HOPELESS = 1.5  # ... for a chi-square this many times the best
 _BROYDEN_STEPS = 4  # accepted steps with updated Jacobians before differences are taken again
 
 
@@ -36,7 +38,7 @@ class Solution:
     """Where each problem ended: u (K, n), chi2 (K,), residuals (K, N), the solver's last
     Jacobian with respect to u (K, N, n; differences, perhaps Broyden-updated since),
     converged (K,) (False too for a problem stopped because a better one came within a
-    standard error of it), steps (K,)."""
+    standard error of it, or was far better after a few steps), steps (K,)."""
 
     u: np.ndarray
     chi2: np.ndarray
@@ -54,6 +56,13 @@ def _jacobians(residuals, u, r, scale, difference_step):
     rows = residuals(shifted.reshape(K * n, n)).reshape(K, n, -1)
     J = (rows - r[:, None, :]) / steps[:, :, None]
     return np.where(np.isfinite(J), J, 0.0).transpose(0, 2, 1)
+
+
+def _abandon(chi2, steps, active) -> None:
+    """Stop every problem that, after _GRACE_STEPS steps, still has a chi-square more than
+    _HOPELESS times the best: it is in another basin and would only cost evaluations."""
+    best = np.min(chi2)
+    active &= ~((steps >= _GRACE_STEPS) & (chi2 > _HOPELESS * best))
 
 
 def _merge(u, chi2, scale, active) -> None:
@@ -136,6 +145,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
         converged[idx[small & ~stale]] = True
         active[idx[(small & ~stale) | (damping[idx] > _MAX_DAMPING)]] = False
         _merge(u, chi2, scale, active)
+        _abandon(chi2, steps, active)
         refresh = idx[active[idx] & ((age[idx] >= _BROYDEN_STEPS) | (stale & (small | ~accepted)))]
         if len(refresh):
             J[refresh] = _jacobians(residuals, u[refresh], r[refresh], scale[refresh], difference_step)

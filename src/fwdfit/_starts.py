@@ -26,9 +26,9 @@ from ._model import ForwardModel
 from ._parameters import FreeParameter
 from ._scene import Scene
 
-_PROBE_PIXELS = 21  # running mean that gauges the sample's drop below the open beam
-_EDGE_SIGNIFICANCE = 5.0  # smoothed drop below the open beam, in its noise, that marks the sample
-_MIN_RUN_UM = 12.0  # ... over at least this stretch
+_MEDIAN_NOISE = 1.25  # noise of a running median over that of a running mean
+_PLATEAU_SIGNIFICANCE = 8.0  # the plateau inside an edge, in the filtered noise: half of it is 4 sigma clear
+_MIN_RUN_UM = 12.0  # a stretch below the open beam this long marks the sample
 _PLATEAU_UM = 20.0  # stretch inside an edge whose median gives the plateau level
 _REFRACTION_MARGIN_UM = 8.0  # refraction fringes beside an edge, beyond the penumbra
 _SEGMENT_BIN_UM = 4.0  # bin width of the segmentation ...
@@ -73,49 +73,50 @@ def _blur_um(scene: Scene, profile) -> float:
     return penumbra + instrument.psf_fwhm_um + instrument.pixel_um
 
 
-def _crossing(x, drop, level, near, reach):
-    """x where drop crosses ``level`` nearest to index ``near`` within ``reach`` pixels."""
-    lo, hi = max(near - reach, 0), min(near + reach, len(drop) - 1)
-    above = drop[lo:hi + 1] >= level
-    changes = np.flatnonzero(above[1:] != above[:-1]) + lo
-    if len(changes) == 0:
-        return float(x[near])
-    i = changes[np.argmin(np.abs(changes - near))]
-    fraction = (level - drop[i]) / (drop[i + 1] - drop[i])
-    return float(x[i] + fraction * (x[i + 1] - x[i]))
+def _walk_out(x, drop, half: float, start: int, step: int) -> float:
+    """x where ``drop`` first falls to ``half`` walking from index ``start`` by ``step`` (+-1)."""
+    i = start
+    while 0 <= i + step < len(drop) and drop[i + step] > half:
+        i += step
+    if not 0 <= i + step < len(drop):
+        return float(x[i])
+    fraction = (drop[i] - half) / (drop[i] - drop[i + step])
+    return float(x[i] + fraction * (x[i + step] - x[i]))
 
 
 def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float, float] | None:
     """(left, right) outer edges (µm) and the open-beam level of one profile; None if no sample.
 
-    The profile is smoothed until the sample's drop below the open beam stands
-    _EDGE_SIGNIFICANCE noise units above noise at half its depth; the edges are where
-    the smoothed profile crosses half the depth of the plateau just inside them (a
-    symmetric smoothing keeps a step's half-way point).
+    A running median (which keeps a step where it is and removes the narrow refraction
+    spikes beside it) is widened until the outermost stretches below the open beam
+    stand clear of the noise: their plateau at least _PLATEAU_SIGNIFICANCE of its noise
+    deep. Each edge is where the filtered profile, walking out from that plateau, falls
+    to half its drop.
     """
     level = _open_level(T)
     noise = max(noise_sigma(T), 1e-6)
-    depth = level - np.quantile(_smooth(T, _PROBE_PIXELS), 0.3)  # a typical drop inside the sample
-    if not depth > _EDGE_SIGNIFICANCE * noise / math.sqrt(_PROBE_PIXELS):
-        return None
-    needed = (2.0 * _EDGE_SIGNIFICANCE * noise / depth) ** 2
-    width = int(min(max(3, round(0.5 * blur_um / pixel_um), math.ceil(needed)), len(T) // 8))
-    drop = level - _smooth(T, width)
-    inside = drop > 0.5 * depth
-    run = max(3, int(round(_MIN_RUN_UM / pixel_um)), width // 2)
-    counts = np.convolve(inside.astype(int), np.ones(run, int), mode="valid")
-    full = np.flatnonzero(counts == run)
-    if len(full) == 0:
-        return None
-    first, last = full[0], full[-1] + run - 1
-    gap = int(math.ceil((blur_um + _REFRACTION_MARGIN_UM) / pixel_um)) + width // 2
-    span = max(3, int(round(_PLATEAU_UM / pixel_um)), width)
-    left_level = np.median(drop[first + gap:first + gap + span]) if first + gap + span < len(T) else drop[first]
-    right_level = np.median(drop[max(last - gap - span, 0):max(last - gap, 1)])
-    reach = gap + run
-    left = _crossing(x_um, drop, 0.5 * left_level, first, reach)
-    right = _crossing(x_um, drop, 0.5 * right_level, last, reach)
-    return left, right, level
+    run = max(3, int(round(_MIN_RUN_UM / pixel_um)))
+    width = max(5, int(round(0.5 * blur_um / pixel_um)))
+    span = max(3, int(round(_PLATEAU_UM / pixel_um)))
+    while width <= len(T) // 8:
+        drop = level - running_median(T, width)
+        noise_filtered = _MEDIAN_NOISE * noise / math.sqrt(width)
+        inside = drop > 0.5 * _PLATEAU_SIGNIFICANCE * noise_filtered
+        inside[:width // 2] = inside[len(T) - width // 2:] = False  # padded ends
+        counts = np.convolve(inside.astype(int), np.ones(run, int), mode="valid")
+        full = np.flatnonzero(counts == run)
+        if len(full):
+            first, last = full[0], full[-1] + run - 1
+            gap = int(math.ceil((blur_um + _REFRACTION_MARGIN_UM) / pixel_um)) + width // 2
+            a, b = min(first + gap, len(T) - 1), max(last - gap, 0)
+            left_level = np.median(drop[a:a + span]) if a < b else drop[first]
+            right_level = np.median(drop[max(b - span, 0):b + 1]) if a < b else drop[last]
+            if min(left_level, right_level) > _PLATEAU_SIGNIFICANCE * noise_filtered:
+                left = _walk_out(x_um, drop, 0.5 * left_level, a, -1)
+                right = _walk_out(x_um, drop, 0.5 * right_level, b, +1)
+                return left, right, level
+        width = 2 * width + 1
+    return None
 
 
 def running_median(values: np.ndarray, n: int) -> np.ndarray:
