@@ -137,7 +137,7 @@ def test_material_and_mode(measured_dir, tmp_path):
 @pytest.mark.parametrize("variant, extra, message", [
     ({}, ["--material", "Alu"], "material 'Alu' is not a layer of the scene (layers: Al)"),
     # L/D = 2: the divergence term (Theta Delta)^2 / 8 beats the phase term
-    ({"aperture_distance_m": 0.08}, [], "profile d01.1mm: Paganin filter: tau = -"),
+    ({"aperture_distance_m": 0.6}, [], "profile d08.5mm: Paganin filter: tau = -"),
     ({"measured": False}, [], "profile d01.1mm has no measured T (file =)"),
     ({}, ["--b-factor", "-1"], "profile d01.1mm: Paganin filter: tau = -"),
 ])

@@ -147,8 +147,8 @@ def _resolve(scene: Scene, name: str) -> list[tuple[str, str, tuple, tuple, floa
         bounds, step = _PROFILE_KEYS[parts[-1]]
         return [(f"profiles.{names[i]}.{parts[-1]}", parts[-1], (parts[-1], (i,)), bounds, step)
                 for i in chosen]
-    raise FwdfitError(f"{scene.path}: fit.vary: unknown parameter {name!r} (see the parameter "
-                      "names in SCENE.md: sample.KEY, layers.LAYER.KEY, profiles.PROFILE.KEY)")
+    raise FwdfitError(f"{scene.path}: fit.vary: unknown parameter {name!r} (parameter names: "
+                      "sample.KEY, layers.LAYER.KEY, profiles.PROFILE.KEY; see docs/SCENE.md)")
 
 
 def _scene_value(scene: Scene, key: str, target: tuple) -> float:

@@ -185,11 +185,11 @@ def load_scene(path: str | Path) -> Scene:
     top = _Reader(path, document, "", _TOP_KEYS)
     if not top.has("sample"):
         top.fail("sample", "missing")
-    sample = _sample(path, document["sample"])
+    fit = _fit(path, document.get("fit", {}))
+    sample = _sample(path, document["sample"], fit.vary)
     instruments = _instruments(path, document)
     spectra = _spectra(path, document.get("spectra", {}))
     profiles = _profiles(path, document.get("profiles", []), instruments, spectra)
-    fit = _fit(path, document.get("fit", {}))
     model = _Reader(path, document.get("model", {}), "model", {"accuracy"})
     accuracy = model.number("accuracy", DEFAULT_ACCURACY, positive=True)
     _check_combinations(path, sample, instruments, profiles)
@@ -236,14 +236,14 @@ def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instr
                 f"(aperture_mm = {instrument.aperture_mm:g}; the model is paraxial; {SEE})")
 
 
-def _sample(path: Path, table: Any) -> Sample:
+def _sample(path: Path, table: Any, vary: tuple[str, ...]) -> Sample:
     reader = _Reader(path, table, "sample", _SAMPLE_KEYS)
     layers_table = table.get("layers")
     if not isinstance(layers_table, list) or not layers_table:
         reader.fail("sample.layers", "at least one [[sample.layers]] is needed")
     layers: list[Layer] = []
     for index, layer_table in enumerate(layers_table):
-        layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers))
+        layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers, vary))
     return Sample(
         depth_mm=reader.number("depth_mm", positive=True),
         tilt_deg=reader.number("tilt_deg", 0.0),
@@ -253,9 +253,12 @@ def _sample(path: Path, table: Any) -> Sample:
     )
 
 
-def _layer(path: Path, table: Any, where: str, earlier: list[Layer]) -> Layer:
+def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple[str, ...] = ()) -> Layer:
+    """One layer. A value named in ``vary`` may be left out: it is NaN, a start the fit
+    estimates from the data."""
     reader = _Reader(path, table, where, _LAYER_KEYS)
     name = reader.string("name")
+    optional = {key for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m") if f"layers.{name}.{key}" in vary}
     if any(layer.name == name for layer in earlier):
         reader.fail(reader.key("name"), f"duplicate layer name {name!r}")
     if reader.has("same_as"):
@@ -273,15 +276,18 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer]) -> Layer:
         material = _material(reader)
     explicit = {key: reader.number(key) for key in ("sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")
                 if reader.has(key)}
-    if material is None and not {"sld_e6_per_A2", "mu_per_m"} <= explicit.keys():
+    if material is None and not {"sld_e6_per_A2", "mu_per_m"} <= explicit.keys() | optional:
         reader.fail(where, "needs a material (material + density_g_cm3, or ncrystal) "
-                    "or both sld_e6_per_A2 and mu_per_m")
+                    "or both sld_e6_per_A2 and mu_per_m (either may be left out when fit.vary names it)")
+    if material is None:
+        explicit = {key: math.nan for key in ("sld_e6_per_A2", "mu_per_m")} | explicit
     if "mu_per_m" in explicit and explicit["mu_per_m"] < 0:
         reader.fail(reader.key("mu_per_m"), "must be >= 0")
     base = material or MaterialConstants(0.0, 0.0)
     return Layer(
         name=name,
-        thickness_um=reader.number("thickness_um", minimum=0.0),
+        thickness_um=reader.number("thickness_um", math.nan if "thickness_um" in optional else None,
+                                   minimum=0.0),
         sld_e6_per_A2=explicit.get("sld_e6_per_A2", base.sld_e6_per_A2),
         mu_per_m=explicit.get("mu_per_m", base.mu_per_m),
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A

@@ -19,6 +19,8 @@ from ._profile_cli import add_profile_parser
 from ._tables import check_paths, staged_folder
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
+EXIT_NOT_CONVERGED = 2  # fit: results written, the solver did not converge
+EXIT_REJECTED = 3  # fit: results written, converged, but the data reject the model
 
 
 class _Parser(argparse.ArgumentParser):
@@ -97,7 +99,8 @@ def _run_paganin(args) -> None:
 
 
 def _run_fit(args) -> int:
-    from ._fit import fit
+    from ._cache import enable_compilation_cache
+    from ._fit import Fitter
     from ._fit_output import write_fit
     from ._scene import load_scene
 
@@ -106,16 +109,25 @@ def _run_fit(args) -> int:
     scene = load_scene(args.scene)
     if args.starts < 1:
         raise FwdfitError(f"--starts must be >= 1, got {args.starts}")
+    if not args.no_cache:
+        enable_compilation_cache()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the notes are printed with the table below
-        result = fit(scene, accuracy=args.accuracy, n_starts=args.starts, seed=args.seed,
-                     max_steps=args.max_steps, progress=not args.quiet)
+        fitter = Fitter(scene, accuracy=args.accuracy, n_starts=args.starts, max_steps=args.max_steps,
+                        progress=not args.quiet)
+        result = fitter(seed=args.seed)
     write_fit(result, Path(args.out))
     print(result.table())
     print(f"compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s; wrote {args.out}")
     for note in result.warnings:
-        print(f"warning: {note}", file=sys.stderr)
-    return 0 if result.converged else 2
+        if note != result.quality.summary():  # said once, below
+            print(f"warning: {note}", file=sys.stderr)
+    if not result.converged:
+        return EXIT_NOT_CONVERGED
+    if not result.quality.passed:
+        print(f"fwdfit: poor fit: {result.quality.summary()}", file=sys.stderr)
+        return EXIT_REJECTED
+    return 0
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -144,16 +156,23 @@ def _parser() -> argparse.ArgumentParser:
                               "over the spectrum")
     paganin.set_defaults(handler=_run_paganin)
     fit = commands.add_parser("fit", help="fit the [fit] parameters to every measured profile at once",
-                              description="Exit status 0: converged; 2: results written but the "
-                                          "solver did not converge; 1: bad input.")
+                              description="Exit status 0: a good fit; 1: bad input; 2: results "
+                                          "written but the solver did not converge; 3: results written, "
+                                          "but the data reject the fit (one line says where). Compiled "
+                                          "models are kept in FWDFIT_CACHE_DIR (default ~/.cache/fwdfit; "
+                                          "'off' disables).")
     fit.add_argument("scene", help="scene file (TOML) with measured profiles and a [fit] table")
     fit.add_argument("--out", required=True, help="output folder")
     fit.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
                      help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
-    fit.add_argument("--starts", type=int, default=1, help="starting points run in parallel (default 1)")
+    fit.add_argument("--starts", type=int, default=1,
+                     help="N > 1 adds N - 1 random starts inside the bounds to the global scan's best "
+                          "points (default 1: the scan alone)")
     fit.add_argument("--seed", type=int, default=0, help="seed for the random starting points")
-    fit.add_argument("--max-steps", type=int, default=200, help="solver steps per stage (default 200)")
+    fit.add_argument("--max-steps", type=int, default=200, help="solver steps (default 200)")
     fit.add_argument("--quiet", action="store_true", help="no progress output")
+    fit.add_argument("--no-cache", action="store_true",
+                     help="compile without the persistent compilation cache")
     fit.set_defaults(handler=_run_fit)
     add_profile_parser(commands)
     return parser
