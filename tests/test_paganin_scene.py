@@ -139,7 +139,7 @@ def test_material_and_mode(measured_dir, tmp_path):
     # L/D = 2: the divergence term (Theta Delta)^2 / 8 beats the phase term
     ({"aperture_distance_m": 0.6}, [], "profile d08.5mm: Paganin filter: tau = -"),
     ({"measured": False}, [], "profile d01.1mm has no measured T (file =)"),
-    ({}, ["--b-factor", "-1"], "profile d01.1mm: Paganin filter: tau = -"),
+    ({}, ["--b-factor", "-1"], "--b-factor: -1 is outside the validity domain"),
 ])
 def test_bad_input_exits_1_with_one_line_and_writes_nothing(measured_dir, tmp_path, capsys,
                                                            variant, extra, message):
