@@ -22,7 +22,7 @@ BENCHMARKS = {
     "speed_vs_error": "time against error: accuracy knob, exact reference at several ray counts, Paganin",
     "fit_speed": "the joint 10 BOA + 4 ICON fit; fit time against profiles, layers, pixels; memory",
     "fit_calibration": "coverage of the fit's 1-sigma errors over noise draws",
-    "multistart": "how many of 20 random starts reach the best fit, over several draws",
+    "fit_starts": "fits from where users start: start kinds, cold and warm command times",
     "paganin_comparison": "the Paganin filter against the forward-model fit",
     "bench_radiograph": "TIFF stacks to profiles: time and peak memory",
 }

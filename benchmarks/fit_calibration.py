@@ -48,7 +48,6 @@ import optimistix as optx  # noqa: E402
 import fwdfit  # noqa: E402
 from _results import results_dir  # noqa: E402
 from _scenes import instruments_toml  # noqa: E402
-from fwdfit._scene import FitSpec  # noqa: E402
 
 NOISE = 0.01
 AL = fwdfit.constants_from_formula("Al", 2.70)
@@ -120,7 +119,7 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0, quick: bool = False) ->
     start_scene = fwdfit.load_scene(folder / "start.toml")
     base = dataclasses.replace(start_scene, profiles=tuple(
         dataclasses.replace(p, T=t.T.copy(), T_err=np.full_like(t.T, NOISE))
-        for p, t in zip(start_scene.profiles, truth_profiles)), fit=FitSpec(tuple(START), {}))
+        for p, t in zip(start_scene.profiles, truth_profiles)), fit=fwdfit.FitSpec(tuple(START), {}))
     n_pixels = sum(len(p.x_um) for p in base.profiles)
     print(f"{len(base.profiles)} profiles, {n_pixels} pixels, {len(START)} free parameters", flush=True)
 
@@ -172,7 +171,7 @@ def main(n_draws: int = 40, time_limit_s: float = 900.0, quick: bool = False) ->
         if np.max(np.abs(pulls)) > 2.5:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                again = compiled(data, starts=truth[None, :])
+                again = compiled(data, start=truth)
             check = {"chi2_from_truth": again.chi2, "chi2_minus_chi2_from_truth": result.chi2 - again.chi2,
                      "values_from_truth": again.values.tolist(),
                      "pulls_from_truth": ((again.values - truth) / again.errors).tolist()}

@@ -7,10 +7,15 @@ too). Helpers shared by the test files (reference loading, scenes written on the
 edge metrics, brute-force references) live in ``helpers.py``.
 """
 
+import os
+import tempfile
+
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# Compiled programs of this session go to a fresh folder, never the user's cache.
+os.environ["FWDFIT_CACHE_DIR"] = tempfile.mkdtemp(prefix="fwdfit-test-cache-")
 
 
 @pytest.fixture

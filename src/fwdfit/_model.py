@@ -87,6 +87,9 @@ class ProfileGroup(eqx.Module):
     wavelength_A: Float[Array, "group lam"]
     wavelength_weight: Float[Array, "group lam"]
     mu_table_per_m: Float[Array, "group lam layer"]
+    step_wavelength_A: Float[Array, "group fine"]  # finer nodes for the step profile's plateaus
+    step_weight: Float[Array, "group fine"]
+    step_mu_table_per_m: Float[Array, "group fine layer"]
 
 
 class ForwardModel(eqx.Module):
@@ -102,11 +105,12 @@ class ForwardModel(eqx.Module):
         T_att: list = [None] * self.n_profiles
         for group in self.groups:
             index = np.asarray(group.index)
-            per_profile = jax.vmap(_profile, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))
+            per_profile = jax.vmap(_profile, in_axes=(None, None, None, 0, 0, 0, 0, 0))
             T_g, T_att_g = per_profile(group, self.interfaces, params, params.distance_mm[index],
                                        params.shift_um[index], group.first_edge_um,
-                                       group.wavelength_A, group.wavelength_weight,
-                                       group.mu_table_per_m)
+                                       (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
+                                       (group.step_wavelength_A, group.step_weight,
+                                        group.step_mu_table_per_m))
             for row, i in enumerate(group.index):
                 T[i] = _blur_and_bin(group, T_g[row])
                 T_att[i] = _blur_and_bin(group, T_att_g[row])
@@ -190,7 +194,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
     at z = 0, its slope, its z-centre, mu before and after (n_lam,) and
     k = 2 (delta_after - delta_before) (n_lam,). Each term is summed over depth
-    nodes aligned with its own kinks (``_kink_aligned_depths``).
+    nodes aligned with its own kinks (``_kink_aligned_depths``). The kernel replaces the
+    crossing rays' step assignment by their true path in its own wavelength quadrature,
+    so that an interface without contrast adds exactly nothing.
     """
     boundary, slope, z_mid, mu_from, mu_to, k = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
@@ -231,13 +237,19 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
 
 
 def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, shift_um,
-             first_edge_um, wavelength_A, wavelength_weight, mu_table_per_m):
-    """(T, T_att) bin averages (n_edges-1,) on the padded sub-pixel grid of one profile."""
+             first_edge_um, spectrum, step_spectrum):
+    """(T, T_att) bin averages (n_edges-1,) on the padded sub-pixel grid of one profile.
+
+    spectrum, step_spectrum: (wavelengths Å, weights, tabulated mu 1/m) for the kernels
+    and, finer, for the plateaus of the step profile.
+    """
+    wavelength_A, wavelength_weight, mu_table_per_m = spectrum
     distance_um, depth_um = distance_mm * 1e3, params.depth_mm * 1e3
     sld, mu = _media(params, wavelength_A, mu_table_per_m)
     boundary, slope, z_mid = _boundaries(params, shift_um)
     edges = first_edge_um + group.bin_um * jnp.arange(group.n_edges)
-    transmitted = wavelength_weight @ jnp.exp(-mu * depth_um)  # (n_layer+2,)
+    step_lam, step_weight, step_table = step_spectrum
+    transmitted = step_weight @ jnp.exp(-_media(params, step_lam, step_table)[1] * depth_um)  # (n_layer+2,)
     T = T_att = _step_profile(group, boundary, jnp.diff(transmitted), distance_um, edges)
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
     n_window = 2 * group.window + 1

@@ -28,8 +28,11 @@ _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
-# Depth nodes per smooth piece at accuracy _BASE_ACCURACY: base + per_log * log(lever ratio).
-_BASE_ACCURACY = 3.3e-4
+# The mid-plane step profile (the plateaus) costs little: its spectrum average uses this
+# many wavelength nodes at least (the plateau of a 2 mm Al block within 2e-5 of exact).
+_STEP_WAVELENGTHS = 64
+_LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
+# Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
 _DEPTH_NODES_PER_LOG = 0.5
 
@@ -42,13 +45,15 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     need fewer wavelength nodes than white beams. The depth integral is split into
     ``_model.DEPTH_PIECES`` pieces on which its integrand is smooth (``_model._kink_aligned_depths``)
     and integrated in the log of the lever; short distances need more nodes (the lever
-    runs over a factor (Delta + d/2) / (Delta - d/2) along the depth). Measured against
-    the converged model, worst RMS over the profiles: 1.7e-4 (Al block) and 2.4e-4
-    (five-layer oxide) at the base sizes, 3.3e-4 and 4.7e-4 at the default 1e-3.
+    runs over a factor (Delta + d/2) / (Delta - d/2) along the depth). The plateaus
+    of the step profile have finer wavelength nodes of their own (``_STEP_WAVELENGTHS``),
+    so the kernels' wavelength nodes only carry the refraction signal: they are set
+    for a third of the error the depth nodes are set for (the depth nodes set the
+    largest single-pixel errors at the edges).
     """
-    factor = math.sqrt(_BASE_ACCURACY / accuracy)
+    factor = math.sqrt(1e-3 / accuracy)
     base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
-    n_lambda = max(4, math.ceil(base_lambda * factor))
+    n_lambda = max(4, math.ceil(base_lambda * factor * _LAMBDA_NODES_SCALE))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
     n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
     return n_lambda, n_z
@@ -137,6 +142,12 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
     return margin * float(np.max(spread + depth_drift))
 
 
+def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
+    """Tabulated attenuation (n_lam, n_layer) 1/m of every layer at wavelengths lam (0 without a table)."""
+    return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
+                     for l in scene.sample.layers], axis=-1)
+
+
 def _ladder(n: int) -> int:
     """Round up to 16 * 2^(k/2) so that profiles at similar distances share one plan."""
     return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
@@ -181,9 +192,9 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         key = (profile.instrument, n_edges, n_sub, n_pad, window, len(lam))
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
-        tables = np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
-                           for l in scene.sample.layers], axis=-1)
-        per_profile.append((first_edge, lam, weight, tables))
+        fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)))
+        per_profile.append((first_edge, lam, weight, _mu_tables(scene, lam), fine_lam, fine_weight,
+                            _mu_tables(scene, fine_lam)))
     groups = []
     for (instrument_name, n_edges, n_sub, n_pad, window, _), index in plans.items():
         instrument = scene.instruments[instrument_name]
@@ -198,7 +209,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             z_nodes=tuple(float(v) for v in 0.5 * (nodes + 1)),
             z_weights=tuple(float(v) for v in 0.5 * weights),
             first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
-            mu_table_per_m=stack(3)))
+            mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
+            step_mu_table_per_m=stack(6)))
     if any(i.fresnel for i in scene.instruments.values()):
         raise FwdfitError(f"{scene.path}: instrument.fresnel: partial Fresnel reflection is not modelled yet")
     return ForwardModel(groups=tuple(groups), interfaces=_interfaces(scene, free),

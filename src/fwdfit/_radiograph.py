@@ -27,8 +27,6 @@ from typing import NamedTuple
 
 import numpy as np
 import tifffile
-from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 
 from ._errors import FwdfitError
 from ._tables import check_finite
@@ -701,6 +699,9 @@ def plot_radiograph_png(path: str | os.PathLike, image: np.ndarray, roi: Sequenc
     region = Roi(*roi)
     low, high = np.nanpercentile(image[region.slices], [0.5, 99.5])
     n_rows, n_cols = image.shape
+    from matplotlib.figure import Figure  # here: importing matplotlib costs 0.3 s
+    from matplotlib.patches import Rectangle
+
     figure = Figure(figsize=(7.0, min(7.0, max(2.5, 6.0 * n_rows / n_cols))))
     axes = figure.add_subplot()
     shown = axes.imshow(image, cmap="gray", vmin=low, vmax=high)

@@ -166,8 +166,8 @@ def _wavelengths(model: ForwardModel, index: int):
     for group in model.groups:
         if index in group.index:
             row = group.index.index(index)
-            return (np.asarray(group.wavelength_A[row]), np.asarray(group.wavelength_weight[row]),
-                    np.asarray(group.mu_table_per_m[row]))
+            return (np.asarray(group.step_wavelength_A[row]), np.asarray(group.step_weight[row]),
+                    np.asarray(group.step_mu_table_per_m[row]))
     raise KeyError(index)
 
 
