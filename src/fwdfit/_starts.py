@@ -33,7 +33,7 @@ _PLATEAU_UM = 20.0  # stretch inside an edge whose median gives the plateau leve
 _REFRACTION_MARGIN_UM = 8.0  # refraction fringes beside an edge, beyond the penumbra
 _SEGMENT_BIN_UM = 4.0  # bin width of the segmentation ...
 _DESPIKE_UM = 15.0  # ... after a running median this wide removes the refraction spikes
-_STEP_SIGNIFICANCE = 4.0  # a segmented step counts when it exceeds this many noise units
+_STEP_SIGNIFICANCE = 5.0  # a segmented step counts when the plateaus differ by this many sigma
 _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
 
 
@@ -250,19 +250,20 @@ def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
         bounds = segment(binned, len(present))
         edges = np.concatenate([[0], bounds, [len(binned)]])
         levels = [binned[a:b].mean() for a, b in zip(edges[:-1], edges[1:])]
-        noise = noise_sigma(T) / math.sqrt(per_bin)
+        noise = _MEDIAN_NOISE * noise_sigma(T) / math.sqrt(per_bin)  # of one bin
+        counts = np.diff(edges)
         for n, i in enumerate(present):
-            steps = [abs(levels[n] - levels[m]) for m in (n - 1, n + 1) if 0 <= m < len(levels)]
-            if min(steps, default=0) > _STEP_SIGNIFICANCE * noise:
-                found[i] = (edges[n + 1] - edges[n]) * per_bin * pixel
-    # Tied layers (same_as) share one thickness: the mean of what was found for them.
+            # each step against the noise of the difference of the two plateaus' means
+            steps = [abs(levels[n] - levels[m]) / (noise * math.sqrt(1 / counts[n] + 1 / counts[m]))
+                     for m in (n - 1, n + 1) if 0 <= m < len(levels)]
+            if min(steps, default=0) > _STEP_SIGNIFICANCE:
+                found[i] = counts[n] * per_bin * pixel
+    # Tied layers (same_as) share one thickness: the mean of the sides where it was found.
     roots = [l.same_as or l.name for l in layers]
     for root in set(roots):
         tied = [i for i, r in enumerate(roots) if r == root]
         seen = found[tied][np.isfinite(found[tied])]
-        if len(seen) and len(seen) < len(tied) and len(tied) > 1:
-            found[tied] = np.nan  # only one side resolved: not trusted
-        elif len(seen):
+        if len(seen):
             found[tied] = seen.mean()
     thickness = np.where(np.isin(np.arange(len(layers)), list(free_thickness)),
                          np.where(np.isfinite(found), found, given), given)
