@@ -358,7 +358,8 @@ class Fitter:
         converged = bool(solution.converged[best])
         if not converged:
             notes.append("the solver did not converge: the values are the last accepted step")
-        quality = self._quality(data, sigma, T_model, values)
+        fitted = _fitted_scene(scene, free, values)
+        quality = self._quality(data, sigma, T_model, fitted)
         if not quality.passed:
             notes.append(quality.summary())
         for note in notes:
@@ -372,33 +373,31 @@ class Fitter:
         message = "converged" if converged else "did not converge within max_steps (see the step count)"
         return FitResult(tuple(p.name for p in free), values, errors, correlation, chi2, dof, converged,
                          message, steps, self.compile_time_s, 0.0, tuple(profiles), tuple(notes),
-                         sigma_from_data, _fitted_scene(scene, free, values), solution.chi2, quality,
+                         sigma_from_data, fitted, solution.chi2, quality,
                          dict(guess.values), 0)
 
-    def _quality(self, data, sigma, T_model, values) -> Quality:
-        """The quality gate on the unsmoothed residuals, with edge regions at every interface."""
-        scene = self.scene
-        params, _, _ = self.assemble(jax.numpy.asarray(values))
-        thickness = np.asarray(params.thickness_um)
-        tilt = float(params.tilt_deg)
-        names = [l.name for l in scene.sample.layers]
-        cumulative = np.concatenate([[0.0], np.cumsum(thickness)])
-        across = (cumulative - 0.5 * cumulative[-1]) / math.cos(math.radians(tilt))
-        media = ["vacuum"] + names + ["vacuum"]
+    def _quality(self, data, sigma, T_model, fitted: Scene) -> Quality:
+        """The quality gate on the unsmoothed residuals, with edge regions at every interface
+        of the fitted scene."""
+        sample = fitted.sample
+        tilt = math.radians(sample.tilt_deg)
+        cumulative = np.concatenate([[0.0], np.cumsum([l.thickness_um for l in sample.layers])])
+        across = (cumulative - 0.5 * cumulative[-1]) / math.cos(tilt)
+        media = ["vacuum"] + [l.name for l in sample.layers] + ["vacuum"]
         labels = [f"{media[k]} | {media[k + 1]}" for k in range(len(across))]
         interfaces, halves, z, offset = [], [], [], 0
-        for i, p in enumerate(scene.profiles):
-            instrument = scene.instruments[p.instrument]
-            centre = float(params.centre_um) + float(params.shift_um[i])
-            slope_um = p.distance_mm * 1e3 * math.tan(math.radians(tilt))
+        for i, p in enumerate(fitted.profiles):
+            instrument = fitted.instruments[p.instrument]
+            centre = sample.centre_um + p.shift_um + sample.drift_um_per_mm * p.distance_mm
+            slope_um = p.distance_mm * 1e3 * math.tan(tilt)
             interfaces.append([(centre + a, centre + a + slope_um, label) for a, label in zip(across, labels)])
             penumbra = p.distance_mm * instrument.aperture_mm / instrument.aperture_distance_m
-            spread = 0.5 * scene.sample.depth_mm * 1e3 * abs(math.tan(math.radians(tilt)))
+            spread = 0.5 * sample.depth_mm * 1e3 * abs(math.tan(tilt))
             halves.append(edge_half_width_um(p.distance_mm, penumbra, instrument.psf_fwhm_um, spread))
             n = len(p.x_um)
             z.append((data[i] - T_model[offset:offset + n]) / sigma[i])
             offset += n
-        return assess([p.name for p in scene.profiles], [p.x_um for p in scene.profiles], z,
+        return assess([p.name for p in fitted.profiles], [p.x_um for p in fitted.profiles], z,
                       interfaces, halves, len(self.free))
 
 

@@ -71,6 +71,7 @@ def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
 
     fig = Figure(figsize=(7, 8))
     top, middle, bottom = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1, 3]})
+    fig.subplots_adjust(left=0.14, right=0.97, top=0.95, bottom=0.07, hspace=0.08)  # tight_layout: 3x slower
     x = profile.x_um
     top.plot(x, profile.T, ".", ms=2, color="0.4", label="measured T")
     top.plot(x, profile.T_model, "-", lw=1, color="C3", label="fit T_model")
@@ -87,8 +88,7 @@ def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
     bottom.set_ylabel("transmission T")
     bottom.set_xlabel("x (µm)")
     bottom.legend(loc="lower center", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=100)
 
 
 def _toml_value(value) -> str:

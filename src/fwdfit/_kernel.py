@@ -110,20 +110,21 @@ def deflected_kinks(mass: AngularMass, k, right_of_interface):
     return tuple(jnp.where(right_of_interface, a, b) for a, b in zip(refracted, reflected))
 
 
-def landing_range(offset, half_width, k):
+def landing_range(offset, half_width, k, xp=jnp):
     """Outgoing grazing angles (lo, hi) (rad) of every ray that crosses the interface.
 
     offset, half_width: as in ``AngularMass`` (the crossing rays have grazing angles
     a in [max(offset - half_width, 0), max(offset + half_width, 0)]); k: the value
     of largest |k| over the spectrum (k ~ lambda^2 keeps its sign). Straight,
     refracted and reflected rays all leave at angles in [lo, hi]: such a ray lands
-    at (angle * lever) from the interface's projection. Works on NumPy and JAX arrays.
+    at (angle * lever) from the interface's projection. xp: the array module (``jax.numpy`` in
+    the model, ``numpy`` for the static plan, which must not dispatch JAX operations).
     """
-    a_min = jnp.maximum(offset - half_width, 0.0)
-    a_max = jnp.maximum(offset + half_width, 0.0)
-    root = jnp.sqrt(jnp.abs(k))
-    reflected = -jnp.minimum(a_max, root)  # the steepest totally reflected ray
-    refracted = jnp.sqrt(jnp.maximum(a_min * a_min - k, 0.0))
-    lo = jnp.where(k > 0, jnp.where(a_min < root, reflected, refracted), a_min)
-    hi = jnp.where(k > 0, a_max, jnp.sqrt(a_max * a_max - jnp.minimum(k, 0.0)))
+    a_min = xp.maximum(offset - half_width, 0.0)
+    a_max = xp.maximum(offset + half_width, 0.0)
+    root = xp.sqrt(xp.abs(k))
+    reflected = -xp.minimum(a_max, root)  # the steepest totally reflected ray
+    refracted = xp.sqrt(xp.maximum(a_min * a_min - k, 0.0))
+    lo = xp.where(k > 0, xp.where(a_min < root, reflected, refracted), a_min)
+    hi = xp.where(k > 0, a_max, xp.sqrt(a_max * a_max - xp.minimum(k, 0.0)))
     return lo, hi

@@ -95,11 +95,12 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
     r = residuals(u)
     chi2 = np.where(np.all(np.isfinite(r), axis=1), np.sum(r * r, axis=1), np.inf)
     r = np.where(np.isfinite(r), r, 0.0)
+    # One difference Jacobian, in steps of the typical scale, gives the standard errors
+    # that set the solver's scale (and serves as its first Jacobian).
     J = _jacobians(residuals, u, r, np.broadcast_to(np.asarray(typical, float), (K, n)), difference_step)
     curvature = J.transpose(0, 2, 1) @ J + _TINY_CURVATURE * np.eye(n)
     errors = np.sqrt(np.clip(np.diagonal(np.linalg.pinv(curvature, hermitian=True), axis1=1, axis2=2), 0, None))
     scale = np.minimum(np.where(errors > 0, errors, np.inf), typical)
-    J = _jacobians(residuals, u, r, scale, difference_step)
     damping = _INITIAL_DAMPING * np.max(np.diagonal(J.transpose(0, 2, 1) @ J * scale[:, None, :] * scale[:, :, None],
                                                     axis1=1, axis2=2), axis=1)
     growth = np.full(K, 2.0)

@@ -136,7 +136,7 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
     offsets = np.concatenate([offsets, -offsets])[:, None]
     slds = [0.0] + [l.sld_e6_per_A2 for l in scene.sample.layers]
     k_max = spectrum.support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi
-    lo, hi = (np.asarray(v) for v in landing_range(offsets, half_angle, np.array([k_max, -k_max])))
+    lo, hi = landing_range(offsets, half_angle, np.array([k_max, -k_max]), xp=np)
     spread = 0.5 * (hi - lo) * (distance_um + 0.5 * depth_um)  # about the centre, at the longest lever
     depth_drift = np.maximum(np.abs(lo), np.abs(hi)) * 0.5 * depth_um  # lever change along the depth
     return margin * float(np.max(spread + depth_drift))
