@@ -172,3 +172,17 @@ def test_random_starts_reach_the_best(tmp_path):
     chi2 = np.array(chi2)
     assert np.all(chi2 - chi2.min() < 0.5), chi2
     np.testing.assert_allclose(tilts, 0.24, atol=0.02)
+
+
+def test_fit_from_zero_thickness_finds_the_block(tmp_path, capsys):
+    """The shipped example started from thickness_um = 0 (its lower bound): the start read
+    off the data finds the 1000 µm block (before: 'converged', 1e-17 µm, chi2/dof 24, exit 0)."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "al_block"
+    for csv in example.glob("*.csv"):
+        (tmp_path / csv.name).write_bytes(csv.read_bytes())
+    text = (example / "scene.toml").read_text()
+    assert "thickness_um = 1100.0" in text
+    (tmp_path / "scene.toml").write_text(text.replace("thickness_um = 1100.0", "thickness_um = 0.0"))
+    status, err, result = _cli_fit(tmp_path / "scene.toml", tmp_path / "out", capsys)
+    assert status == 0, err
+    assert abs(result["parameters"]["layers.Al.thickness_um"]["value"] - 1000.0) < 2.0

@@ -34,6 +34,7 @@ _REFRACTION_MARGIN_UM = 8.0  # refraction fringes beside an edge, beyond the pen
 _SEGMENT_BIN_UM = 4.0  # bin width of the segmentation ...
 _DESPIKE_UM = 15.0  # ... after a running median this wide removes the refraction spikes
 _STEP_SIGNIFICANCE = 5.0  # a segmented step counts when the plateaus differ by this many sigma
+_SHARP_BLUR_FACTOR = 4.0  # profiles blurred at most this much more than the sharpest give the edges
 _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
 
 
@@ -192,12 +193,16 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     sharpest = min(usable, key=lambda i: _blur_um(scene, profiles[i]))
     offset = lambda i: profiles[i].shift_um + sample.drift_um_per_mm * profiles[i].distance_mm
     centres = {i: 0.5 * (found[i][0] + found[i][1]) for i in usable}
-    left, right, _ = found[sharpest]
-    width = right - left
+    # The stack's centre and width: the median over the sharp profiles (far ones are washed
+    # out and widened by their fringes), each edge found to a few µm in noisy data.
+    sharp = [i for i in usable if _blur_um(scene, profiles[i]) <= _SHARP_BLUR_FACTOR * _blur_um(scene, profiles[sharpest])]
+    centre_found = float(np.median([centres[i] - offset(i) for i in sharp]))
+    width = float(np.median([found[i][1] - found[i][0] for i in sharp]))
+    left = centre_found + offset(sharpest) - 0.5 * width  # on the sharpest profile
     for p in free:
         field, index = p.target
         if field == "centre_um":
-            values[p.name] = centres[sharpest] - offset(sharpest)
+            values[p.name] = centre_found
         elif field == "norm" and index[0] in usable:
             values[p.name] = found[index[0]][2]
         elif field == "background" and math.isnan(p.value):
