@@ -29,8 +29,9 @@ import fwdfit._simulate
 from fwdfit._limits import DOMAIN, MAX_TILT_DEG
 from fwdfit.cli import main
 
-SRC = Path(fwdfit.__file__).parent
-PYPROJECT = SRC.parent.parent / "pyproject.toml"
+REPOSITORY = Path(__file__).resolve().parents[1]  # the checkout, whether fwdfit is installed from it or not
+SRC = REPOSITORY / "src" / "fwdfit"
+PYPROJECT = REPOSITORY / "pyproject.toml"
 
 SCENE = """\
 [sample]
