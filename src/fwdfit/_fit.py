@@ -5,8 +5,7 @@ The strategy, each step in its own module:
 1. starting values read off the data (``_starts``: edges, plateaus, open beam),
    whatever the scene says; a free parameter may have no start value at all;
 2. a global scan of what the edges pin only weakly, tilt and SLDs (``_search``);
-3. Levenberg-Marquardt from the best few points, coarse to fine: model and data
-   smoothed alike first, then at full resolution (``_least_squares``);
+3. Levenberg-Marquardt from the best few points at once (``_least_squares``);
 4. uncertainties from the Jacobian at the optimum (``_uncertainty``);
 5. the quality gate: does the data accept the fit, and if not, where not (``_quality``).
 
@@ -37,11 +36,7 @@ from ._starts import estimate, noise_sigma
 from ._uncertainty import band, central_differences, covariance, errors_and_correlation
 
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
-_SMOOTHING_SCHEDULE_UM = (0.0,)  # the local solver's stages, coarse to fine
-_COARSE_TOLERANCE = 0.3  # standard errors: the coarse stage only needs to reach the final basin
 _CANDIDATES = 3  # starting points handed from the global scan to the local solver
-_KEEP_DELTA_CHI2 = 25.0  # after the coarse stage, starts this far above the best are dropped
-_UNPIN_FRACTION = 0.1  # a coarse stage that ended on a bound restarts this fraction of the box inside
 _TINY_SLOPE = 1e-12  # d value / d u below this counts as zero (a value deep in a bound's transform)
 _ERROR_STEP = 0.1  # central-difference step for the final Jacobian, in standard errors
 
@@ -230,7 +225,7 @@ class Fitter:
         lengths = [len(p.x_um) for p in scene.profiles]
         pixels = [scene.instruments[p.instrument].pixel_um for p in scene.profiles]
         self._smoothers = {s: _Smoother(lengths, pixels, s)
-                           for s in (_SEARCH_SMOOTHING_UM, *_SMOOTHING_SCHEDULE_UM)}
+                           for s in (_SEARCH_SMOOTHING_UM, 0.0)}
 
     def random_starts(self, n: int, around: np.ndarray, seed: int = 0) -> np.ndarray:
         """n random starting points (n, n_free): uniform inside two bounds, else spread
@@ -282,28 +277,18 @@ class Fitter:
         self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
         if self.n_starts > 1:
             candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
-        u = self._units(candidates)
-        total_steps = np.zeros(len(u), int)
-        for stage, smoothing_um in enumerate(_SMOOTHING_SCHEDULE_UM):
-            final = stage == len(_SMOOTHING_SCHEDULE_UM) - 1
-            solution = levenberg_marquardt(
-                lambda rows, s=smoothing_um: residuals(self._values(rows), s), u, self._typical(u, final),
-                tolerance=self.tolerance if final else max(self.tolerance, _COARSE_TOLERANCE),
-                max_steps=self.max_steps, progress=_progress_printer(self.progress))
-            u = solution.u
-            total_steps += solution.steps
-            self._say(f"stage {stage + 1}/{len(_SMOOTHING_SCHEDULE_UM)} (model and data smoothed by "
-                      f"{smoothing_um:g} um): best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
-            if not final:
-                keep = _distinct_contenders(solution)
-                u, total_steps = u[keep], total_steps[keep]
-                u = np.stack([p.inside(u[:, j], _UNPIN_FRACTION) for j, p in enumerate(free)], axis=1)
+        solution = levenberg_marquardt(
+            lambda rows: residuals(self._values(rows), 0.0), self._units(candidates),
+            self._typical(self._units(candidates)), tolerance=self.tolerance, max_steps=self.max_steps,
+            progress=_progress_printer(self.progress))
+        u = solution.u
+        self._say(f"local solver: best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
         chi2 = solution.chi2
         best = int(np.argmin(np.where(np.isfinite(chi2), chi2, np.inf)))
         if not np.isfinite(chi2[best]):
             raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
         values = self._values(u[best])
-        result = self._result(data, sigma, sigma_from_data, values, solution, best, int(total_steps[best]), guess)
+        result = self._result(data, sigma, sigma_from_data, values, solution, best, int(solution.steps[best]), guess)
         self._say("uncertainties and quality gate", begin, evaluations)
         wall = time.perf_counter() - begin
         return dataclasses.replace(result, wall_time_s=wall,
@@ -314,11 +299,9 @@ class Fitter:
             print(f"{what}  [{time.perf_counter() - begin:.1f} s, "
                   f"{self.predict.n_evaluations - evaluations} model evaluations]", flush=True)
 
-    def _typical(self, u: np.ndarray, final: bool) -> np.ndarray:
-        """Largest solver scale (K, n), in u: one unit in the coarse stages; in the final one,
-        one typical physical step, so that a value converging onto a bound stops there."""
-        if not final:
-            return np.ones_like(u)
+    def _typical(self, u: np.ndarray) -> np.ndarray:
+        """Largest solver scale (K, n), in u: one typical physical step (at least one unit),
+        so that a value converging onto a bound, deep in its transform, stops there."""
         slope = np.stack([p.value_per_unit(u[:, j]) for j, p in enumerate(self.free)], axis=1)
         steps = np.array([p.step for p in self.free])
         return np.maximum(steps / np.maximum(np.abs(slope), _TINY_SLOPE), 1.0)
@@ -399,21 +382,6 @@ class Fitter:
             offset += n
         return assess([p.name for p in fitted.profiles], [p.x_um for p in fitted.profiles], z,
                       interfaces, halves, len(self.free))
-
-
-def _distinct_contenders(solution) -> np.ndarray:
-    """Indices of the coarse stage's ends worth refining: within _KEEP_DELTA_CHI2 of the best,
-    and not where a better one already ended (closer than one standard error in every value)."""
-    order = np.argsort(np.where(np.isfinite(solution.chi2), solution.chi2, np.inf))
-    errors = np.sqrt(np.clip(np.diagonal(np.linalg.pinv(
-        solution.jacobian.transpose(0, 2, 1) @ solution.jacobian, hermitian=True), axis1=1, axis2=2), 0, None))
-    kept: list[int] = []
-    for i in order:
-        if solution.chi2[i] > solution.chi2[order[0]] + _KEEP_DELTA_CHI2:
-            break
-        if all(np.any(np.abs(solution.u[i] - solution.u[k]) > errors[k]) for k in kept):
-            kept.append(int(i))
-    return np.array(kept)
 
 
 def _compile_guess_s(model) -> float:

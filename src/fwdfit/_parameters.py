@@ -107,14 +107,6 @@ class FreeParameter:
             return self.step * sigmoid
         return np.full_like(u, self.step)
 
-    def inside(self, u, fraction: float):
-        """u moved, if needed, so that its value lies at least ``fraction`` of the box from
-        either bound (two bounds only; unchanged otherwise)."""
-        if not (math.isfinite(self.low) and math.isfinite(self.high)):
-            return u
-        limit = self._width * math.log((1.0 - fraction) / fraction)
-        return np.clip(u, -limit, limit)
-
     @property
     def origin(self) -> float:
         """Where u = 0 lies for an unbounded parameter: its start, else 0."""
