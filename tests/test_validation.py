@@ -198,9 +198,12 @@ def test_b_factor_option_is_checked(scene, tmp_path, capsys, value):
 
 
 def test_library_simulate_checks_accuracy(scene):
-    """``fwdfit.simulate(scene, accuracy=0)`` is refused, not replaced by the scene's."""
+    """``fwdfit.simulate(scene, accuracy=0)`` and ``fwdfit.build_model`` (which the fit
+    uses) refuse it, rather than replacing it by the scene's."""
     with pytest.raises(fwdfit.FwdfitError, match=r"accuracy: 0 is outside the validity domain"):
         fwdfit.simulate(scene, accuracy=0.0)
+    with pytest.raises(fwdfit.FwdfitError, match=r"accuracy: 0 is outside the validity domain"):
+        fwdfit.build_model(fwdfit.load_scene(scene), accuracy=0.0)
 
 
 def test_bad_option_is_one_line_exit_1(scene, tmp_path, capsys):

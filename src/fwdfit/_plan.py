@@ -18,7 +18,7 @@ import numpy as np
 
 from ._errors import FwdfitError
 from ._kernel import landing_range
-from ._limits import MAX_TILT_DEG  # default bound of a free tilt
+from ._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
 from ._scene import Scene
 from ._spectrum import GaussianLine, wavelength_quadrature
@@ -163,7 +163,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     tilts the model must serve (default: the scene's tilt, or ±MAX_TILT_DEG when
     ``sample.tilt_deg`` is free); kernel windows are sized for it.
     """
-    accuracy = accuracy or scene.accuracy
+    accuracy = scene.accuracy if accuracy is None else check_domain("accuracy", accuracy, "accuracy")
     if tilt_range_deg is None:
         tilt = scene.sample.tilt_deg
         tilt_range_deg = (-MAX_TILT_DEG, MAX_TILT_DEG) if "sample.tilt_deg" in free else (tilt, tilt)

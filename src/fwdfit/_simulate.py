@@ -8,7 +8,6 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 
-from ._limits import check_domain
 from ._plan import build_model, initial_params
 from ._scene import Scene, load_scene
 from ._tables import check_finite, staged_folder, write_columns
@@ -32,8 +31,6 @@ def simulate(scene: Scene | str | Path, accuracy: float | None = None) -> list[S
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
-    if accuracy is not None:
-        accuracy = check_domain("accuracy", accuracy, "accuracy")
     model = build_model(scene, accuracy)
     T, T_att = eqx.filter_jit(model)(initial_params(scene))
     profiles = [SimulatedProfile(p.name, p.x_um, np.asarray(t), np.asarray(a))
