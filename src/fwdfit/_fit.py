@@ -25,7 +25,6 @@ import jax
 import numpy as np
 
 from ._errors import FwdfitError
-from ._least_squares import HOPELESS as _HOPELESS
 from ._least_squares import levenberg_marquardt
 from ._parameters import FreeParameter, assembler, free_parameters
 from ._plan import build_model
@@ -39,9 +38,6 @@ from ._uncertainty import band, central_differences, covariance, errors_and_corr
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
 _CANDIDATES = 3  # starting points handed from the global scan to the local solver
 _TINY_SLOPE = 1e-12  # d value / d u below this counts as zero (a value deep in a bound's transform)
-_POSITIONS = ("thickness_um", "centre_um", "shift_um", "drift_um_per_mm")  # read off the data ...
-_HELD_SCALE = 1e-4  # ... and held (solver scale, in u) while the rest settles first
-_SETTLE_TOLERANCE = 0.3  # standard errors: the first phase only needs to reach the basin
 _ERROR_STEP = 0.1  # central-difference step for the final Jacobian, in standard errors
 
 
@@ -281,21 +277,10 @@ class Fitter:
         self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
         if self.n_starts > 1:
             candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
-        u = self._units(candidates)
-        # First the weakly pinned values settle with the positions held where the data put
-        # them (a tiny scale freezes a coordinate), so that no interface slides into a
-        # neighbouring minimum while the SLDs are still far off; then everything moves.
-        held = np.array([p.target[0] in _POSITIONS for p in free])
-
-        def solve(u, typical, tolerance):
-            return levenberg_marquardt(lambda rows: residuals(self._values(rows), 0.0), u, typical,
-                                       tolerance=tolerance, max_steps=self.max_steps,
-                                       progress=_progress_printer(self.progress))
-
-        settled = solve(u, np.where(held, _HELD_SCALE, self._typical(u)), _SETTLE_TOLERANCE)
-        keep = settled.chi2 <= _HOPELESS * np.min(settled.chi2)  # hopeless starts stop here
-        solution = solve(settled.u[keep], self._typical(settled.u[keep]), self.tolerance)
-        steps = settled.steps[keep] + solution.steps
+        solution = levenberg_marquardt(
+            lambda rows: residuals(self._values(rows), 0.0), self._units(candidates),
+            self._typical(self._units(candidates)), tolerance=self.tolerance, max_steps=self.max_steps,
+            progress=_progress_printer(self.progress))
         u = solution.u
         self._say(f"local solver: best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
         chi2 = solution.chi2
@@ -303,7 +288,7 @@ class Fitter:
         if not np.isfinite(chi2[best]):
             raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
         values = self._values(u[best])
-        result = self._result(data, sigma, sigma_from_data, values, solution, best, int(steps[best]), guess)
+        result = self._result(data, sigma, sigma_from_data, values, solution, best, int(solution.steps[best]), guess)
         self._say("uncertainties and quality gate", begin, evaluations)
         wall = time.perf_counter() - begin
         return dataclasses.replace(result, wall_time_s=wall,

@@ -29,7 +29,7 @@ _INITIAL_DAMPING = 1e-3  # times the largest curvature
 _MAX_DAMPING = 1e14  # a problem whose damping exceeds this cannot improve: it stops
 _MIN_GAIN_RATIO = 1e-4  # a step is accepted when it achieves this share of the predicted decrease
 _GRACE_STEPS = 5  # steps every problem takes before it can be abandoned ...
-HOPELESS = 1.5  # ... for a chi-square this many times the best
+_HOPELESS = 1.5  # ... for a chi-square this many times the best
 _BROYDEN_STEPS = 4  # accepted steps with updated Jacobians before differences are taken again
 
 
@@ -60,9 +60,9 @@ def _jacobians(residuals, u, r, scale, difference_step):
 
 def _abandon(chi2, steps, active) -> None:
     """Stop every problem that, after _GRACE_STEPS steps, still has a chi-square more than
-    HOPELESS times the best: it is in another basin and would only cost evaluations."""
+    _HOPELESS times the best: it is in another basin and would only cost evaluations."""
     best = np.min(chi2)
-    active &= ~((steps >= _GRACE_STEPS) & (chi2 > HOPELESS * best))
+    active &= ~((steps >= _GRACE_STEPS) & (chi2 > _HOPELESS * best))
 
 
 def _merge(u, chi2, scale, active) -> None:
