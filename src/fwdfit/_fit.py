@@ -277,10 +277,10 @@ class Fitter:
         self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
         if self.n_starts > 1:
             candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
+        u = self._units(candidates)
         solution = levenberg_marquardt(
-            lambda rows: residuals(self._values(rows), 0.0), self._units(candidates),
-            self._typical(self._units(candidates)), tolerance=self.tolerance, max_steps=self.max_steps,
-            progress=_progress_printer(self.progress))
+            lambda rows: residuals(self._values(rows), 0.0), u, self._typical(u), tolerance=self.tolerance,
+            max_steps=self.max_steps, progress=_progress_printer(self.progress))
         u = solution.u
         self._say(f"local solver: best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
         chi2 = solution.chi2
