@@ -148,6 +148,7 @@ def tof_profiles(sample: TofStack, open_beam: TofStack, dark: TofStack | None,
             white = dose_correct(white, local[1])
         angle_deg = edge_angle_deg(white, local[0])
     tilt = math.tan(math.radians(angle_deg))
+    column_spacing_um = pixel_um * math.cos(math.radians(angle_deg))
     T, T_err = [], []
     for index, group in enumerate(groups):
         try:
@@ -158,7 +159,7 @@ def tof_profiles(sample: TofStack, open_beam: TofStack, dark: TofStack | None,
                 image = dose_correct(image, local[1])
                 variance = None if variance is None else variance / scale**2
             roi_image = sheared_roi(image, local[0], tilt) if rotate else image[local[0].slices]
-            x_um, T_bin, T_err_bin = average_rows(roi_image, pixel_um * math.cos(math.radians(angle_deg)))
+            x_um, T_bin, T_err_bin = average_rows(roi_image, column_spacing_um)
         except FwdfitError as error:
             raise FwdfitError(f"bin {index} ({wavelength_A(edges_s[index], flight_path_m):.4g}"
                               f"-{wavelength_A(edges_s[index + 1], flight_path_m):.4g} A): "

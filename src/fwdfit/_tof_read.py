@@ -211,7 +211,7 @@ def _nexus_signal(h5, handle) -> str:
     return found[0]
 
 
-def _axis_names(h5, data) -> list[str]:
+def _axis_names(data) -> list[str]:
     """NeXus ``axes`` of the data's group (one name per dimension, '.' for none)."""
     axes = data.parent.attrs.get("axes", data.attrs.get("axes"))
     if axes is None:
@@ -224,13 +224,14 @@ def _axis_names(h5, data) -> list[str]:
 def _tof_axis(h5, data, tof_dataset: str | None) -> tuple[object, int]:
     """The time-of-flight dataset and the data axis it labels."""
     handle = data.file
-    names = _axis_names(h5, data)
+    names = _axis_names(data)
     if tof_dataset is None:
         candidates = [n for n in names if n in TOF_AXIS_NAMES and n in data.parent]
         candidates += [n for n in TOF_AXIS_NAMES if n in data.parent and n not in candidates]
         if not candidates:
             raise FwdfitError(f"{handle.filename}: no time-of-flight axis beside {data.name} "
-                              f"(looked for {', '.join(TOF_AXIS_NAMES)}); name it with --tof-dataset")
+                              f"(looked for {', '.join(TOF_AXIS_NAMES)}); name it with "
+                              "--tof-dataset")
         tof = data.parent[candidates[0]]
     else:
         if tof_dataset not in handle or not isinstance(handle[tof_dataset], h5.Dataset):
@@ -239,7 +240,8 @@ def _tof_axis(h5, data, tof_dataset: str | None) -> tuple[object, int]:
     short = tof.name.rsplit("/", 1)[-1]
     if short in names:
         return tof, names.index(short)
-    lengths = [axis for axis, n in enumerate(data.shape) if tof.shape and n in (tof.shape[0], tof.shape[0] - 1)]
+    n_times = tof.size
+    lengths = [axis for axis, n in enumerate(data.shape) if n in (n_times, n_times - 1)]
     if not lengths:
         raise FwdfitError(f"{handle.filename}: {tof.name} has {tof.shape} values, matching no "
                           f"axis of {data.name} {data.shape}")
@@ -274,7 +276,8 @@ def open_hdf5(path: Path, dataset: str | None = None,
     with handle:
         name = _nexus_signal(h5, handle) if dataset is None else dataset
         if name not in handle or not isinstance(handle[name], h5.Dataset):
-            raise FwdfitError(f"{path}: no dataset {name}" + ("" if dataset is None else " (--dataset)"))
+            option = "" if dataset is None else " (--dataset)"
+            raise FwdfitError(f"{path}: no dataset {name}{option}")
         data = handle[name]
         if data.ndim != 3:
             raise FwdfitError(f"{path}: {name} has shape {data.shape}, not (bins, rows, columns)")
