@@ -375,3 +375,33 @@ def test_tof_options_without_tof_and_missing_extra(fits_dirs, tmp_path, capsys, 
     assert main(tof_args(tmp_path / "s.nxs", tmp_path / "s.nxs", None, out)) == 1
     assert "reading HDF5 needs h5py: pip install 'fwdfit[tof]'" in one_error_line(capsys)
     assert not out.exists()
+
+
+def test_ctrl_c_and_a_non_empty_out_folder_leave_nothing(fits_dirs, tmp_path, capsys,
+                                                         monkeypatch):
+    """Ctrl-C while writing the bins leaves neither the folder nor temporary files; a
+    non-empty --out folder is refused and left as it was."""
+    import fwdfit._profile_cli
+
+    def args(out):
+        return tof_args(fits_dirs["sample"], fits_dirs["open"], None, out)
+
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "mine.txt").write_text("keep")
+    assert main(args(taken)) == 1
+    assert "folder exists and is not empty" in one_error_line(capsys)
+    assert [p.name for p in taken.iterdir()] == ["mine.txt"]
+    calls = []
+
+    def interrupt(*a, **k):
+        calls.append(a)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(fwdfit._profile_cli, "write_profile_csv", interrupt)
+    out = tmp_path / "bins"
+    assert main(args(out)) == 130
+    assert capsys.readouterr().err == "fwdfit: interrupted\n"
+    assert not out.exists() and len(calls) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dark", "open", "sample", "taken"]
