@@ -110,7 +110,9 @@ def tof_profiles(sample: TofStack, open_beam: TofStack, dark: TofStack | None,
     if errors == "counts" and rotate:
         raise FwdfitError("--errors counts cannot be used with --rotate (interpolated pixels "
                           "share counts); use --errors rows")
-    stacks = {"sample": sample, "open beam": open_beam, **({"dark": dark} if dark is not None else {})}
+    stacks = {"sample": sample, "open beam": open_beam}
+    if dark is not None:
+        stacks["dark"] = dark
     check_same_bins(stacks)
     if errors == "counts":
         not_counts = [name for name, stack in stacks.items() if not stack.integer_valued]
