@@ -25,6 +25,7 @@ BENCHMARKS = {
     "fit_starts": "fits from where users start: start kinds, cold and warm command times",
     "paganin_comparison": "the Paganin filter against the forward-model fit",
     "bench_radiograph": "TIFF stacks to profiles: time and peak memory",
+    "bench_tof": "time-of-flight FITS and NeXus stacks to per-bin profiles: time and peak memory",
 }
 
 
