@@ -91,6 +91,27 @@ def test_levenberg_marquardt_solves_many_problems_at_once():
     assert merged.any() and np.all(solution.steps[merged] < solution.steps[best])
 
 
+def test_levenberg_marquardt_holds_coordinates_of_typical_scale_zero():
+    """A coordinate with typical scale 0 stays exactly where it starts, the others reach the
+    least-squares optimum given it (a, c of y = a exp(-b t) + c with b held at 1.0: a linear
+    fit), and the Jacobian column of the held coordinate costs no evaluation."""
+    t = np.linspace(0.0, 4.0, 60)
+    data = 2.0 * np.exp(-1.3 * t) + 0.5
+    rows_seen = []
+
+    def residuals(rows):
+        rows_seen.append(len(rows))
+        return rows[:, :1] * np.exp(-rows[:, 1:2] * t) + rows[:, 2:3] - data
+
+    solution = levenberg_marquardt(residuals, np.array([[1.0, 1.0, 0.0]]), np.array([1.0, 0.0, 1.0]),
+                                   tolerance=1e-8, max_steps=100)
+    assert solution.u[0, 1] == 1.0
+    design = np.stack([np.exp(-t), np.ones_like(t)], axis=1)
+    expected, *_ = np.linalg.lstsq(design, data, rcond=None)
+    np.testing.assert_allclose(solution.u[0, [0, 2]], expected, atol=1e-7)
+    assert max(rows_seen) == 2  # difference Jacobians: two columns, not three
+
+
 def test_levenberg_marquardt_survives_failing_evaluations():
     """Trial points where the model gives NaN are rejected, not accepted: sqrt model."""
     t = np.linspace(1.0, 3.0, 20)

@@ -37,6 +37,7 @@ from ._uncertainty import band, central_differences, covariance, errors_and_corr
 
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
 _CANDIDATES = 3  # starting points handed from the global scan to the local solver
+_SETTLE_TOLERANCE = 0.3  # standard errors: the held phase of the local solver only finds the basin
 _TINY_SLOPE = 1e-12  # d value / d u below this counts as zero (a value deep in a bound's transform)
 _ERROR_STEP = 0.1  # central-difference step for the final Jacobian, in standard errors
 
@@ -278,9 +279,19 @@ class Fitter:
         if self.n_starts > 1:
             candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
         u = self._units(candidates)
-        solution = levenberg_marquardt(
-            lambda rows: residuals(self._values(rows), 0.0), u, self._typical(u), tolerance=self.tolerance,
-            max_steps=self.max_steps, progress=_progress_printer(self.progress))
+
+        def solve(u, typical, tolerance):
+            return levenberg_marquardt(lambda rows: residuals(self._values(rows), 0.0), u, typical,
+                                       tolerance=tolerance, max_steps=self.max_steps,
+                                       progress=_progress_printer(self.progress))
+
+        held = np.array([p.name in guess.held_names for p in free])
+        if held.any():
+            # Interior interfaces stay where the data put them while the SLDs, which the
+            # scan only brackets, settle: else an interface slides into a neighbouring
+            # fringe's minimum. Then everything moves.
+            u = solve(u, np.where(held, 0.0, self._typical(u)), _SETTLE_TOLERANCE).u
+        solution = solve(u, self._typical(u), self.tolerance)
         u = solution.u
         self._say(f"local solver: best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
         chi2 = solution.chi2

@@ -52,10 +52,12 @@ def _jacobians(residuals, u, r, scale, difference_step):
     """Forward-difference Jacobians (K, N, n) of residuals at u (K, n) with values r (K, N)."""
     K, n = u.shape
     steps = difference_step * scale  # (K, n)
-    shifted = u[:, None, :] + np.eye(n)[None] * steps[:, :, None]  # (K, n, n)
-    rows = residuals(shifted.reshape(K * n, n)).reshape(K, n, -1)
-    J = (rows - r[:, None, :]) / steps[:, :, None]
-    return np.where(np.isfinite(J), J, 0.0).transpose(0, 2, 1)
+    moving = np.flatnonzero(np.any(steps != 0, axis=0))  # held coordinates (scale 0) cost nothing
+    shifted = u[:, None, :] + np.eye(n)[moving][None] * steps[:, moving, None]  # (K, m, n)
+    rows = residuals(shifted.reshape(K * len(moving), n)).reshape(K, len(moving), -1)
+    J = np.zeros((K, r.shape[1], n))
+    J[:, :, moving] = ((rows - r[:, None, :]) / steps[:, moving, None]).transpose(0, 2, 1)
+    return np.where(np.isfinite(J), J, 0.0)
 
 
 def _abandon(chi2, steps, active) -> None:
@@ -74,7 +76,7 @@ def _merge(u, chi2, scale, active) -> None:
         if not active[i]:
             continue
         for j in order[rank + 1:]:
-            if active[j] and np.all(np.abs(u[j] - u[i]) < scale[i]):
+            if active[j] and np.all(np.abs(u[j] - u[i]) <= scale[i]):
                 active[j] = False
 
 
@@ -85,7 +87,8 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
     """Minimise sum(residuals(u)**2) from each row of u0 (K, n).
 
     residuals: rows of u (m, n) -> residual rows (m, N), non-finite where the model fails.
-    typical: (n,) or (K, n) largest scale of each coordinate (one typical step, in u).
+    typical: (n,) or (K, n) largest scale of each coordinate (one typical step, in u); 0 holds
+    a coordinate where it starts.
     tolerance: a problem stops when its step moves no parameter by more than this many
     standard errors. difference_step: forward-difference step in standard errors.
     progress: called after every step with (step, chi2 (K,)).

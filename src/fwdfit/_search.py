@@ -22,8 +22,9 @@ _TILT_SPACING_DEG = 0.1  # coarse tilt grid up to 1 degree ...
 _WIDE_TILT_SPACING_DEG = 0.25  # ... and beyond
 _TILT_REFINE_DEG = (-0.05, -0.025, 0.025, 0.05)  # around each of the best coarse tilts
 _TILT_MINIMA = 3  # coarse minima refined
-_SLD_FACTORS = (0.6, 0.8, 1.25, 1.5)  # scales of the SLD starts tried ...
-_SLD_VALUES = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0)  # ... or values tried where the scene gives none
+_SLD_VALUES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0)  # SLDs tried where the scene gives none ...
+_SLD_FACTORS = tuple(np.array(_SLD_VALUES) / 2.5)  # ... else scales of the scene's value (0.2-2.4)
+_SLD_SWEEPS = 2  # sweeps over the SLDs, one at a time
 SLD_VALUE_MAX = max(_SLD_VALUES)  # model windows are sized for this where the scene gives no SLD
 _UNKNOWN_SLD = 2.0  # SLD of a layer without start until its scan
 _DISTINCT_TILT_DEG = 1.5 * _TILT_SPACING_DEG  # candidates closer in tilt than this share a basin
@@ -89,23 +90,19 @@ def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
         points = np.concatenate([points, coarse, refined])
         chi2 = np.concatenate([chi2, coarse_chi2, chi2_of(refined)])
     if slds:
-        best = points[np.argsort(chi2)[:2]]
-        scaled = []
-        for row in best:
-            if unknown_sld:
-                for value in _SLD_VALUES:
-                    trial = row.copy()
-                    trial[unknown_sld] = value
-                    scaled.append(trial)
-            known = [j for j in slds if j not in unknown_sld]
-            if known:
-                for factor in _SLD_FACTORS:
-                    trial = row.copy()
-                    trial[known] = row[known] * factor
-                    scaled.append(trial)
-        scaled = _inside(free, np.array(scaled))
-        points = np.concatenate([points, scaled])
-        chi2 = np.concatenate([chi2, chi2_of(scaled)])
+        # SLD by SLD (each layer's fringes sit at its own interfaces): sweeps from the two best
+        # points so far; each trial set holds the current value, so a sweep never loses.
+        for row in points[np.argsort(chi2)[:2]]:
+            for _ in range(_SLD_SWEEPS):
+                for j in slds:
+                    trials = np.repeat(row[None], 1 + len(_SLD_VALUES), axis=0)
+                    trials[1:, j] = (np.array(_SLD_VALUES) if j in unknown_sld
+                                     else row[j] * np.array(_SLD_FACTORS))
+                    trials = _inside(free, trials)
+                    trial_chi2 = chi2_of(trials)
+                    points = np.concatenate([points, trials])
+                    chi2 = np.concatenate([chi2, trial_chi2])
+                    row = trials[np.argmin(np.where(np.isfinite(trial_chi2), trial_chi2, np.inf))]
     order = np.argsort(np.where(np.isfinite(chi2), chi2, np.inf))
     kept: list[np.ndarray] = []
     for i in order:

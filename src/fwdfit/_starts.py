@@ -32,7 +32,9 @@ _MIN_RUN_UM = 12.0  # a stretch below the open beam this long marks the sample
 _PLATEAU_UM = 20.0  # stretch inside an edge whose median gives the plateau level
 _REFRACTION_MARGIN_UM = 8.0  # refraction fringes beside an edge, beyond the penumbra
 _SEGMENT_BIN_UM = 4.0  # bin width of the segmentation ...
-_DESPIKE_UM = 15.0  # ... after a running median this wide removes the refraction spikes
+_DESPIKE_UM = 25.0  # ... after a running median this wide removes the refraction spikes (loss and gain
+# beside an interface at short distances reach 20 µm together; at 15 µm the oxide's o1 | Al fringe took a
+# plateau of its own)
 _STEP_SIGNIFICANCE = 5.0  # a segmented step counts when the plateaus differ by this many sigma
 _SHARP_BLUR_FACTOR = 4.0  # profiles blurred at most this much more than the sharpest give the edges
 _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
@@ -45,6 +47,7 @@ class Estimate:
 
     values: dict[str, float]
     thickness_names: tuple[str, ...]  # the free thicknesses among them
+    held_names: tuple[str, ...] = ()  # free thicknesses read off interior steps (not the thickest layer's)
 
 
 def _smooth(values: np.ndarray, n: int) -> np.ndarray:
@@ -218,22 +221,26 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
         distance = np.array([profiles[i].distance_mm for i in usable])
         shift = np.array([centres[i] - centre - profiles[i].shift_um for i in usable])
         values["sample.drift_um_per_mm"] = float(np.polyfit(distance, shift, 1)[0])
-    thickness = _layer_thicknesses(scene, free, T[sharpest], profiles[sharpest], left, width)
-    names = []
+    thickness, seen = _layer_thicknesses(scene, free, T[sharpest], profiles[sharpest], left, width)
+    names, held = [], []
     for p in free:
         field, index = p.target
         if field == "thickness_um":
             values[p.name] = float(thickness[index[0]])
             names.append(p.name)
+            if len(thickness) > 1 and seen[list(index)].all() and np.max(thickness) not in thickness[list(index)]:
+                held.append(p.name)
     # Every profile sees the same stack, shifted by its own offset: its plateaus are placed
     # with the sharpest profile's edges (the far profiles' edges are washed out).
     placed = {i: (left + offset(i) - offset(sharpest), found[i][2]) for i in usable}
     _attenuations(scene, free, T, placed, thickness, model, values)
-    return Estimate(values, tuple(names))
+    return Estimate(values, tuple(names), tuple(held))
 
 
-def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float) -> np.ndarray:
-    """Thickness of every layer (n_layer,) µm at tilt 0, summing to the projected width.
+def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Thickness of every layer (n_layer,) µm at tilt 0, summing to the projected width, and
+    whether the segmentation saw it (n_layer,) bool.
 
     Free thicknesses come from the segmentation where its steps are significant,
     else from the scene's value, else an equal share of what the fixed layers leave.
@@ -242,7 +249,7 @@ def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
     free_thickness = {i for p in free if p.target[0] == "thickness_um" for i in p.target[1]}
     given = np.array([l.thickness_um for l in layers], float)
     if len(layers) == 1:
-        return np.array([width])
+        return np.array([width]), np.array([True])
     pixel = scene.instruments[profile.instrument].pixel_um
     inside = (profile.x_um > left) & (profile.x_um < left + width)
     per_bin = max(1, int(round(_SEGMENT_BIN_UM / pixel)))
@@ -280,7 +287,7 @@ def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
     rest = width - thickness[~adjustable].sum()
     if adjustable.any() and thickness[adjustable].sum() > 0 and rest > 0:
         thickness[adjustable] *= rest / thickness[adjustable].sum()
-    return thickness
+    return thickness, np.isfinite(found)
 
 
 def _attenuations(scene: Scene, free, T, placed, thickness, model: ForwardModel, values) -> None:
