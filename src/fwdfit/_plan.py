@@ -21,7 +21,7 @@ from ._kernel import landing_range
 from ._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
 from ._scene import Scene
-from ._spectrum import GaussianLine, wavelength_quadrature
+from ._spectrum import BandSpectrum, GaussianLine, wavelength_quadrature
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
@@ -31,6 +31,11 @@ _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is eva
 # The mid-plane step profile (the plateaus) costs little: its spectrum average uses this
 # many wavelength nodes at least (the plateau of a 2 mm Al block within 2e-5 of exact).
 _STEP_WAVELENGTHS = 64
+# Bragg edges that split the wavelength quadrature: those whose jump in exp(-mu * depth)
+# exceeds the accuracy, the strongest first, at most this many.
+_MAX_BRAGG_BREAKS = 8
+# A band narrower than this fraction of its centre needs no more wavelength nodes than a line.
+_NARROW_BAND_REL = 0.3
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
@@ -52,7 +57,10 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     largest single-pixel errors at the edges).
     """
     factor = math.sqrt(1e-3 / accuracy)
-    base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
+    narrow = isinstance(spectrum, GaussianLine) or (
+        isinstance(spectrum, BandSpectrum) and spectrum.table is None
+        and spectrum.lambda_max_A - spectrum.lambda_min_A < _NARROW_BAND_REL * spectrum.mean_wavelength_A)
+    base_lambda = 8 if narrow else 24
     n_lambda = max(4, math.ceil(base_lambda * factor * _LAMBDA_NODES_SCALE))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
     n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
@@ -148,6 +156,19 @@ def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
                      for l in scene.sample.layers], axis=-1)
 
 
+def bragg_breaks_A(scene: Scene, accuracy: float) -> tuple[float, ...]:
+    """Bragg edges (Å) at which the wavelength quadrature splits, for every layer's material.
+
+    Those whose jump in exp(-mu * depth) (about depth x the drop in mu) exceeds ``accuracy``,
+    the strongest ``_MAX_BRAGG_BREAKS``; none for scenes without tabulated materials.
+    """
+    depth_m = 1e-3 * scene.sample.depth_mm
+    edges = [(jump * depth_m, edge) for layer in scene.sample.layers if layer.material
+             for edge, jump in zip(layer.material.bragg_edges_A, layer.material.bragg_jumps_per_m)]
+    strongest = sorted((e for e in edges if e[0] > accuracy), reverse=True)[:_MAX_BRAGG_BREAKS]
+    return tuple(sorted(edge for _, edge in strongest))
+
+
 def _ladder(n: int) -> int:
     """Round up to 16 * 2^(k/2) so that profiles at similar distances share one plan."""
     return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
@@ -170,6 +191,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     plans: dict[tuple, list[int]] = {}
     per_profile = []
     depth_nodes = {}
+    breaks_A = bragg_breaks_A(scene, accuracy)
     for i, profile in enumerate(scene.profiles):
         instrument = scene.instruments[profile.instrument]
         spectrum = scene.spectra[profile.spectrum]
@@ -187,12 +209,12 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         window = math.ceil(window_um / bin_um) + 2
         window = min(_ladder(window), (n_edges - 1) // 2)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
-        lam, weight = wavelength_quadrature(spectrum, n_lambda)
+        lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
         key = (profile.instrument, n_edges, n_sub, n_pad, window, len(lam))
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
-        fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)))
+        fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)), breaks_A)
         per_profile.append((first_edge, lam, weight, _mu_tables(scene, lam), fine_lam, fine_weight,
                             _mu_tables(scene, fine_lam)))
     groups = []
