@@ -200,3 +200,16 @@ def test_written_scene_keeps_ncrystal_and_band(tmp_path):
     np.testing.assert_allclose(other.material.mu_table(lam) + other.mu_per_m,
                                layer.material.mu_table(lam) + layer.mu_per_m, rtol=1e-12)
     assert math.isclose(other.mu_per_m_per_A, layer.mu_per_m_per_A)
+
+
+def test_density_scale_is_ncrystal_density_scaling(tmp_path):
+    """A layer's ``density_scale = 0.9`` gives the profiles of NCrystal's own ``density=0.9x``
+    (which scales the number density, hence SLD and every cross-section term)."""
+    import fwdfit
+
+    scaled = _scene(tmp_path)
+    scaled.write_text(scaled.read_text().replace(f'ncrystal = "{AL}"', f'ncrystal = "{AL}"\ndensity_scale = 0.9'))
+    by_ncrystal = _scene(tmp_path, AL + ";density=0.9x", name="n.toml")
+    for a, b in zip(fwdfit.simulate(scaled), fwdfit.simulate(by_ncrystal)):
+        np.testing.assert_allclose(a.T, b.T, atol=2e-6)  # without the scale they differ by 1e-3
+        np.testing.assert_allclose(a.T_att, b.T_att, atol=2e-6)

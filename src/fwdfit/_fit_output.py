@@ -121,6 +121,8 @@ def scene_toml(scene: Scene, relative_to: Path) -> str:
         for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
             if not math.isnan(getattr(layer, key)):  # NaN: a start left to the fit
                 lines.append(f"{key} = {_toml_value(getattr(layer, key))}")
+        if layer.density_scale != 1.0:
+            lines.append(f"density_scale = {_toml_value(layer.density_scale)}")
     for name, inst in scene.instruments.items():
         lines += ["", "[instrument]" if name == "" else f"[instruments.{json.dumps(name)}]"]
         for key in ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel"):

@@ -92,6 +92,7 @@ def initial_params(scene: Scene, dtype=None) -> ModelParams:
         sld_e6_per_A2=arr([l.sld_e6_per_A2 for l in layers]),
         mu_per_m=arr([l.mu_per_m for l in layers]),
         mu_per_m_per_A=arr([l.mu_per_m_per_A for l in layers]),
+        density_scale=arr([l.density_scale for l in layers]),
         tilt_deg=arr(scene.sample.tilt_deg),
         centre_um=arr(scene.sample.centre_um),
         depth_mm=arr(scene.sample.depth_mm),
@@ -104,15 +105,17 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
     """Interfaces that need a kernel, skipping zero-thickness layers whose thickness is fixed."""
     layers = scene.sample.layers
     vacuum = dict(sld_e6_per_A2=0.0, mu_per_m=0.0, mu_per_m_per_A=0.0, table=None)
-    media = [vacuum] + [dict(sld_e6_per_A2=l.sld_e6_per_A2, mu_per_m=l.mu_per_m,
-                             mu_per_m_per_A=l.mu_per_m_per_A,
+    media = [vacuum] + [dict(sld_e6_per_A2=l.density_scale * l.sld_e6_per_A2,
+                             mu_per_m=l.density_scale * l.mu_per_m,
+                             mu_per_m_per_A=l.density_scale * l.mu_per_m_per_A,
                              table=l.material.mu_table if l.material else None) for l in layers] + [vacuum]
 
     def name(layer):  # free parameters of tied layers (same_as) carry the first one's name
         return layer.same_as or layer.name
 
-    def is_free(medium, key):
-        return 0 < medium <= len(layers) and f"layers.{name(layers[medium - 1])}.{key}" in free
+    def is_free(medium, key):  # a free density scale changes every constant of its layer
+        return 0 < medium <= len(layers) and any(f"layers.{name(layers[medium - 1])}.{k}" in free
+                                                 for k in (key, "density_scale"))
 
     kept = [0] + [i + 1 for i, l in enumerate(layers)
                   if l.thickness_um > 0 or f"layers.{name(l)}.thickness_um" in free] + [len(layers) + 1]
@@ -142,7 +145,7 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
     slope = np.tan(np.radians(tilt_range_deg))
     offsets = np.linspace(direction.min() - slope.max(), direction.max() - slope.min(), _OFFSET_GRID)
     offsets = np.concatenate([offsets, -offsets])[:, None]
-    slds = [0.0] + [l.sld_e6_per_A2 for l in scene.sample.layers]
+    slds = [0.0] + [l.density_scale * l.sld_e6_per_A2 for l in scene.sample.layers]
     k_max = spectrum.support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi
     lo, hi = landing_range(offsets, half_angle, np.array([k_max, -k_max]), xp=np)
     spread = 0.5 * (hi - lo) * (distance_um + 0.5 * depth_um)  # about the centre, at the longest lever

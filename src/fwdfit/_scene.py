@@ -31,7 +31,10 @@ DEFAULT_ACCURACY = 1e-3
 
 @dataclasses.dataclass(frozen=True)
 class Layer:
-    """One layer of the stack; ``same_as`` names the earlier layer it is tied to."""
+    """One layer of the stack; ``same_as`` names the earlier layer it is tied to.
+
+    ``density_scale`` multiplies the SLD and the whole mu(lambda) (table included).
+    """
 
     name: str
     thickness_um: float
@@ -40,6 +43,7 @@ class Layer:
     mu_per_m_per_A: float = 0.0
     same_as: str | None = None
     material: MaterialConstants | None = None
+    density_scale: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +108,7 @@ class Scene:
 
 _SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "drift_um_per_mm", "layers"}
 _LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
-               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as"}
+               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as", "density_scale"}
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
 _PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um",
@@ -294,6 +298,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
                                     if "mu_per_m" not in explicit else 0.0),
         material=material,
+        density_scale=reader.number("density_scale", 1.0, positive=True),
     )
 
 
