@@ -113,9 +113,10 @@ class ForwardModel(eqx.Module):
                                        (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
                                        (group.step_wavelength_A, group.step_weight,
                                         group.step_mu_table_per_m))
+            blur_and_bin = jax.vmap(lambda values: _blur_and_bin(group, values))  # one op for all rows
+            T_g, T_att_g = blur_and_bin(T_g), blur_and_bin(T_att_g)
             for row, i in enumerate(group.index):
-                T[i] = _blur_and_bin(group, T_g[row])
-                T_att[i] = _blur_and_bin(group, T_att_g[row])
+                T[i], T_att[i] = T_g[row], T_att_g[row]
         return T, T_att
 
 
