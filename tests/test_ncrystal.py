@@ -175,8 +175,11 @@ def test_unknown_ncrystal_file_is_one_line_error(tmp_path, capsys):
     (("lambda_max_A = 6.0", "lambda_max_A = 6.0\nlambda_maximum_A = 6.0"), "spectra.white.lambda_maximum_A"),
     (("lambda_max_A = 6.0", "lambda_max_A = 6.0\nfwhm_rel = 0.1"), "spectra.white"),
     (("lambda_max_A = 6.0", "lambda_max_A = 60.0"), "spectra.white.lambda_max_A"),
+    ((f'ncrystal = "{AL}"', f'ncrystal = "{AL}"\ndensity_scale = 0.0'), "sample.layers[0].density_scale"),
+    ((f'ncrystal = "{AL}"', f'ncrystal = "{AL}"\ndensity_scal = 1.0'), "sample.layers[0].density_scal"),
+    ((f'ncrystal = "{AL}"', f'ncrystal = "{AL};temp=-5K"'), "sample.layers[0].ncrystal"),
 ])
-def test_bad_band_is_one_line_error(tmp_path, capsys, edit, key):
+def test_bad_band_or_layer_is_one_line_error(tmp_path, capsys, edit, key):
     path, out = _scene(tmp_path), tmp_path / "out"
     path.write_text(path.read_text().replace(*edit))
     assert main(["simulate", str(path), "--out", str(out)]) == 1
