@@ -26,7 +26,7 @@ import numpy as np
 
 from ._errors import FwdfitError
 from ._least_squares import levenberg_marquardt
-from ._parameters import FreeParameter, assembler, free_parameters
+from ._parameters import LAYER_FIELDS, FreeParameter, assembler, free_parameters
 from ._plan import build_model
 from ._predict import Predictor
 from ._quality import Quality, assess, edge_half_width_um
@@ -160,7 +160,7 @@ def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
     layers = list(scene.sample.layers)
     for p in free:
         field, index = p.target
-        for i in index if field in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A") else ():
+        for i in index if field in LAYER_FIELDS else ():
             value = getattr(layers[i], field)
             if field == "sld_e6_per_A2":
                 value = SLD_VALUE_MAX if math.isnan(value) else value
@@ -423,7 +423,7 @@ def _fitted_scene(scene: Scene, free: tuple[FreeParameter, ...], values) -> Scen
     sample_updates = {}
     for p, value in zip(free, values):
         key, index = p.target
-        if key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
+        if key in LAYER_FIELDS:
             for i in index:
                 layers[i] = dataclasses.replace(layers[i], **{key: float(value)})
         elif key in ("distance_mm", "shift_um", "norm", "background"):

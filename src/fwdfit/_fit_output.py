@@ -13,7 +13,7 @@ import numpy as np
 from ._errors import FwdfitError
 from ._fit import FitResult
 from ._scene import Scene
-from ._spectrum import GaussianLine
+from ._spectrum import BandSpectrum, GaussianLine
 from ._tables import staged_folder, write_columns
 
 
@@ -102,7 +102,8 @@ def _toml_value(value) -> str:
 
 
 def scene_toml(scene: Scene, relative_to: Path) -> str:
-    """A scene as TOML text (explicit material constants; file paths relative to ``relative_to``)."""
+    """A scene as TOML text (explicit material constants, an NCrystal layer's cfg kept for its
+    mu(lambda); file paths relative to ``relative_to``)."""
     def rel(path: Path) -> str:
         return os.path.relpath(Path(path).resolve(), relative_to.resolve())
 
@@ -115,9 +116,13 @@ def scene_toml(scene: Scene, relative_to: Path) -> str:
         if layer.same_as:
             lines.append(f"same_as = {_toml_value(layer.same_as)}")
             continue
+        if layer.material is not None and layer.material.ncrystal_cfg:  # mu(lambda) is NCrystal's
+            lines.append(f"ncrystal = {_toml_value(layer.material.ncrystal_cfg)}")
         for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
             if not math.isnan(getattr(layer, key)):  # NaN: a start left to the fit
                 lines.append(f"{key} = {_toml_value(getattr(layer, key))}")
+        if layer.density_scale != 1.0:
+            lines.append(f"density_scale = {_toml_value(layer.density_scale)}")
     for name, inst in scene.instruments.items():
         lines += ["", "[instrument]" if name == "" else f"[instruments.{json.dumps(name)}]"]
         for key in ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel"):
@@ -127,7 +132,12 @@ def scene_toml(scene: Scene, relative_to: Path) -> str:
         if isinstance(spectrum, GaussianLine):
             lines += [f"wavelength_A = {_toml_value(spectrum.wavelength_A)}",
                       f"fwhm_rel = {_toml_value(spectrum.fwhm_rel)}"]
-        else:
+            continue
+        if isinstance(spectrum, BandSpectrum):
+            lines += [f"lambda_min_A = {_toml_value(spectrum.lambda_min_A)}",
+                      f"lambda_max_A = {_toml_value(spectrum.lambda_max_A)}"]
+            spectrum = spectrum.table
+        if spectrum is not None:
             lines.append(f"file = {_toml_value(rel(spectrum.path))}")
     for p in scene.profiles:
         lines += ["", "[[profiles]]", f"name = {_toml_value(p.name)}",

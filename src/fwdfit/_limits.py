@@ -31,6 +31,7 @@ DOMAIN: dict[str, tuple[float, float]] = {
     "drift_um_per_mm": (-100.0, 100.0),
     "thickness_um": (0.0, 1e5),
     "density_g_cm3": (1e-4, 30.0),
+    "density_scale": (0.01, 100.0),
     "sld_e6_per_A2": (-20.0, 20.0),
     "mu_per_m": (0.0, 1e6),
     "mu_per_m_per_A": (0.0, 1e5),

@@ -19,6 +19,8 @@ import numpy as np
 from ._errors import FwdfitError
 
 THERMAL_WAVELENGTH_A = 1.798  # wavelength at which absorption cross-sections are tabulated
+_MIN_EDGE_A = 0.1  # Bragg edges below this wavelength are not listed
+_EDGE_SIDE_REL = 1e-9  # relative offset at which mu is read on either side of an edge
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,12 +30,18 @@ class MaterialConstants:
     sld_e6_per_A2: coherent scattering length density, 1e-6 Å^-2.
     mu_per_m, mu_per_m_per_A: attenuation ``mu_per_m + mu_per_m_per_A * lambda[Å]``, 1/m.
     mu_table: optional extra attenuation ``lambda_A -> 1/m`` (NCrystal Bragg edges).
+    ncrystal_cfg: the NCrystal cfg string the constants came from (kept for writing scenes).
+    bragg_edges_A, bragg_jumps_per_m: wavelengths (Å, decreasing) where ``mu_table`` jumps,
+    and mu just below minus just above each (1/m).
     """
 
     sld_e6_per_A2: float
     mu_per_m: float
     mu_per_m_per_A: float = 0.0
     mu_table: Callable[[np.ndarray], np.ndarray] | None = None
+    ncrystal_cfg: str | None = None
+    bragg_edges_A: tuple[float, ...] = ()
+    bragg_jumps_per_m: tuple[float, ...] = ()
 
 
 def constants_from_formula(formula: str, density_g_cm3: float) -> MaterialConstants:
@@ -61,7 +69,13 @@ def constants_from_formula(formula: str, density_g_cm3: float) -> MaterialConsta
 
 
 def constants_from_ncrystal(cfg: str) -> MaterialConstants:
-    """Wavelength-dependent attenuation (Bragg edges included) and SLD from an NCrystal cfg string."""
+    """SLD and attenuation (Bragg edges included) of an NCrystal cfg string (``"Al_sg225.ncmat;temp=200K"``).
+
+    SLD: coherent scattering lengths times number density. mu(lambda): NCrystal's total
+    scattering plus absorption cross-sections times number density, as ``mu_table``.
+    ``bragg_edges_A``: every edge (lambda = 2 d of a plane family) above 0.1 Å, with the
+    drop in mu across it in ``bragg_jumps_per_m``, for the spectrum quadrature.
+    """
     try:
         import NCrystal
     except ImportError:
@@ -73,15 +87,21 @@ def constants_from_ncrystal(cfg: str) -> MaterialConstants:
         scatter = NCrystal.createScatter(cfg)
         absorb = NCrystal.createAbsorption(cfg)
     except Exception as error:  # NCrystal raises its own exception hierarchy
-        raise FwdfitError(f"NCrystal material {cfg!r}: {error}") from None
-    atoms_per_A3 = info.getNumberDensity()
-    sld_e6 = 1e6 * atoms_per_A3 * 1e-5 * sum(
-        fraction * atom.atomData.coherentScatLen() for fraction, atom in info.composition
-    )  # coherentScatLen is in fm; 1 fm = 1e-5 Å
+        message = " ".join(str(error).split())
+        raise FwdfitError(f"NCrystal material {cfg!r}: {message}") from None
+    per_m_per_barn = 100.0 * info.getNumberDensity()  # (atoms/Å^3) x barn = 1/cm
+    sld_e6 = 1e6 * info.getNumberDensity() * 1e-5 * sum(
+        fraction * atom.coherentScatLenFM() for fraction, atom in info.composition
+    )  # 1 fm = 1e-5 Å
 
     def mu_table(wavelength_A: np.ndarray) -> np.ndarray:
         energy = NCrystal.wl2ekin(np.asarray(wavelength_A, dtype=float))
         barn = scatter.crossSectionIsotropic(energy) + absorb.crossSectionIsotropic(energy)
-        return 1e2 * atoms_per_A3 * 1e24 * barn * 1e-24  # (1/Å^3)(barn) -> 1/cm -> 1/m
+        return per_m_per_barn * np.asarray(barn, dtype=float)
 
-    return MaterialConstants(sld_e6_per_A2=sld_e6, mu_per_m=0.0, mu_table=mu_table)
+    edges = np.unique([2.0 * hkl.d for hkl in info.hklObjects()]) if info.hasHKLInfo() else np.zeros(0)
+    edges = edges[edges > _MIN_EDGE_A][::-1]
+    jumps = mu_table(edges * (1 - _EDGE_SIDE_REL)) - mu_table(edges * (1 + _EDGE_SIDE_REL))
+    return MaterialConstants(sld_e6_per_A2=sld_e6, mu_per_m=0.0, mu_table=mu_table, ncrystal_cfg=cfg,
+                             bragg_edges_A=tuple(float(v) for v in edges),
+                             bragg_jumps_per_m=tuple(float(v) for v in jumps))

@@ -36,7 +36,8 @@ DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-p
 class ModelParams(eqx.Module):
     """Traced parameters, in the units of the scene keys.
 
-    Per layer (n_layer,): thickness_um, sld_e6_per_A2, mu_per_m, mu_per_m_per_A.
+    Per layer (n_layer,): thickness_um, sld_e6_per_A2, mu_per_m, mu_per_m_per_A, and
+    density_scale (multiplies the SLD and the whole mu(lambda), tabulated part included).
     Per profile (n_profile,): distance_mm, shift_um (lateral shift of the profile).
     """
 
@@ -44,6 +45,7 @@ class ModelParams(eqx.Module):
     sld_e6_per_A2: Float[Array, " layer"]
     mu_per_m: Float[Array, " layer"]
     mu_per_m_per_A: Float[Array, " layer"]
+    density_scale: Float[Array, " layer"]
     tilt_deg: Float[Array, ""]
     centre_um: Float[Array, ""]
     depth_mm: Float[Array, ""]
@@ -111,17 +113,19 @@ class ForwardModel(eqx.Module):
                                        (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
                                        (group.step_wavelength_A, group.step_weight,
                                         group.step_mu_table_per_m))
+            blur_and_bin = jax.vmap(lambda values: _blur_and_bin(group, values))  # one op for all rows
+            T_g, T_att_g = blur_and_bin(T_g), blur_and_bin(T_att_g)
             for row, i in enumerate(group.index):
-                T[i] = _blur_and_bin(group, T_g[row])
-                T_att[i] = _blur_and_bin(group, T_att_g[row])
+                T[i], T_att[i] = T_g[row], T_att_g[row]
         return T, T_att
 
 
 def _media(params: ModelParams, wavelength_A, mu_table_per_m):
     """SLD (n_layer+2,) in 1e-6 Å^-2 and mu (n_lam, n_layer+2) in 1/µm, vacuum at both ends."""
     zero = jnp.zeros((1,), params.sld_e6_per_A2.dtype)
-    sld = jnp.concatenate([zero, params.sld_e6_per_A2, zero])
-    mu = params.mu_per_m + params.mu_per_m_per_A * wavelength_A[:, None] + mu_table_per_m
+    sld = jnp.concatenate([zero, params.density_scale * params.sld_e6_per_A2, zero])
+    mu = params.density_scale * (params.mu_per_m + params.mu_per_m_per_A * wavelength_A[:, None]
+                                 + mu_table_per_m)
     return sld, jnp.pad(mu * 1e-6, ((0, 0), (1, 1)))
 
 

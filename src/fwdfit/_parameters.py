@@ -3,7 +3,7 @@ the solver's unconstrained coordinates, physical values and model parameters.
 
 Names: ``sample.tilt_deg``, ``sample.centre_um``, ``sample.depth_mm``,
 ``sample.drift_um_per_mm``, ``layers.<layer>.<thickness_um | sld_e6_per_A2 |
-mu_per_m | mu_per_m_per_A>``, ``profiles.<profile>.<distance_mm | shift_um | norm |
+mu_per_m | mu_per_m_per_A | density_scale>``, ``profiles.<profile>.<distance_mm | shift_um | norm |
 background>``; ``profiles.*.<key>`` frees one parameter per profile. A layer
 tied with ``same_as`` shares its twin's parameters under either name.
 
@@ -37,7 +37,9 @@ _LAYER_KEYS = {
     "sld_e6_per_A2": ((0.0, _INF), 0.1),
     "mu_per_m": ((0.0, _INF), 1.0),
     "mu_per_m_per_A": ((0.0, _INF), 0.1),
+    "density_scale": ((0.0, _INF), 0.01),
 }
+LAYER_FIELDS = tuple(_LAYER_KEYS)  # per-layer model parameters
 # A free tilt is bounded by +-DEFAULT_TILT_BOUND_DEG, widened to twice a larger start
 # (at most MAX_TILT_DEG): kernel windows grow with the tilts the model must serve,
 # and samples are aligned to better than a degree.

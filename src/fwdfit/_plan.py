@@ -21,7 +21,7 @@ from ._kernel import landing_range
 from ._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
 from ._scene import Scene
-from ._spectrum import GaussianLine, wavelength_quadrature
+from ._spectrum import BandSpectrum, GaussianLine, wavelength_quadrature
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
@@ -31,6 +31,11 @@ _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is eva
 # The mid-plane step profile (the plateaus) costs little: its spectrum average uses this
 # many wavelength nodes at least (the plateau of a 2 mm Al block within 2e-5 of exact).
 _STEP_WAVELENGTHS = 64
+# Bragg edges that split the wavelength quadrature: those whose jump in exp(-mu * depth)
+# exceeds the accuracy, the strongest first, at most this many.
+_MAX_BRAGG_BREAKS = 8
+# A band narrower than this fraction of its centre needs no more wavelength nodes than a line.
+_NARROW_BAND_REL = 0.3
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
@@ -52,7 +57,10 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     largest single-pixel errors at the edges).
     """
     factor = math.sqrt(1e-3 / accuracy)
-    base_lambda = 8 if isinstance(spectrum, GaussianLine) else 24
+    narrow = isinstance(spectrum, GaussianLine) or (
+        isinstance(spectrum, BandSpectrum) and spectrum.table is None
+        and spectrum.lambda_max_A - spectrum.lambda_min_A < _NARROW_BAND_REL * spectrum.mean_wavelength_A)
+    base_lambda = 8 if narrow else 24
     n_lambda = max(4, math.ceil(base_lambda * factor * _LAMBDA_NODES_SCALE))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
     n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
@@ -84,6 +92,7 @@ def initial_params(scene: Scene, dtype=None) -> ModelParams:
         sld_e6_per_A2=arr([l.sld_e6_per_A2 for l in layers]),
         mu_per_m=arr([l.mu_per_m for l in layers]),
         mu_per_m_per_A=arr([l.mu_per_m_per_A for l in layers]),
+        density_scale=arr([l.density_scale for l in layers]),
         tilt_deg=arr(scene.sample.tilt_deg),
         centre_um=arr(scene.sample.centre_um),
         depth_mm=arr(scene.sample.depth_mm),
@@ -96,15 +105,17 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
     """Interfaces that need a kernel, skipping zero-thickness layers whose thickness is fixed."""
     layers = scene.sample.layers
     vacuum = dict(sld_e6_per_A2=0.0, mu_per_m=0.0, mu_per_m_per_A=0.0, table=None)
-    media = [vacuum] + [dict(sld_e6_per_A2=l.sld_e6_per_A2, mu_per_m=l.mu_per_m,
-                             mu_per_m_per_A=l.mu_per_m_per_A,
+    media = [vacuum] + [dict(sld_e6_per_A2=l.density_scale * l.sld_e6_per_A2,
+                             mu_per_m=l.density_scale * l.mu_per_m,
+                             mu_per_m_per_A=l.density_scale * l.mu_per_m_per_A,
                              table=l.material.mu_table if l.material else None) for l in layers] + [vacuum]
 
     def name(layer):  # free parameters of tied layers (same_as) carry the first one's name
         return layer.same_as or layer.name
 
-    def is_free(medium, key):
-        return 0 < medium <= len(layers) and f"layers.{name(layers[medium - 1])}.{key}" in free
+    def is_free(medium, key):  # a free density scale changes every constant of its layer
+        return 0 < medium <= len(layers) and any(f"layers.{name(layers[medium - 1])}.{k}" in free
+                                                 for k in (key, "density_scale"))
 
     kept = [0] + [i + 1 for i, l in enumerate(layers)
                   if l.thickness_um > 0 or f"layers.{name(l)}.thickness_um" in free] + [len(layers) + 1]
@@ -134,7 +145,7 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
     slope = np.tan(np.radians(tilt_range_deg))
     offsets = np.linspace(direction.min() - slope.max(), direction.max() - slope.min(), _OFFSET_GRID)
     offsets = np.concatenate([offsets, -offsets])[:, None]
-    slds = [0.0] + [l.sld_e6_per_A2 for l in scene.sample.layers]
+    slds = [0.0] + [l.density_scale * l.sld_e6_per_A2 for l in scene.sample.layers]
     k_max = spectrum.support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi
     lo, hi = landing_range(offsets, half_angle, np.array([k_max, -k_max]), xp=np)
     spread = 0.5 * (hi - lo) * (distance_um + 0.5 * depth_um)  # about the centre, at the longest lever
@@ -146,6 +157,19 @@ def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
     """Tabulated attenuation (n_lam, n_layer) 1/m of every layer at wavelengths lam (0 without a table)."""
     return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
                      for l in scene.sample.layers], axis=-1)
+
+
+def bragg_breaks_A(scene: Scene, accuracy: float) -> tuple[float, ...]:
+    """Bragg edges (Å) at which the wavelength quadrature splits, for every layer's material.
+
+    Those whose jump in exp(-mu * depth) (about depth x the drop in mu) exceeds ``accuracy``,
+    the strongest ``_MAX_BRAGG_BREAKS``; none for scenes without tabulated materials.
+    """
+    depth_m = 1e-3 * scene.sample.depth_mm
+    edges = [(jump * depth_m, edge) for layer in scene.sample.layers if layer.material
+             for edge, jump in zip(layer.material.bragg_edges_A, layer.material.bragg_jumps_per_m)]
+    strongest = sorted((e for e in edges if e[0] > accuracy), reverse=True)[:_MAX_BRAGG_BREAKS]
+    return tuple(sorted(edge for _, edge in strongest))
 
 
 def _ladder(n: int) -> int:
@@ -170,6 +194,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     plans: dict[tuple, list[int]] = {}
     per_profile = []
     depth_nodes = {}
+    breaks_A = bragg_breaks_A(scene, accuracy)
     for i, profile in enumerate(scene.profiles):
         instrument = scene.instruments[profile.instrument]
         spectrum = scene.spectra[profile.spectrum]
@@ -187,12 +212,12 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         window = math.ceil(window_um / bin_um) + 2
         window = min(_ladder(window), (n_edges - 1) // 2)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
-        lam, weight = wavelength_quadrature(spectrum, n_lambda)
+        lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
         key = (profile.instrument, n_edges, n_sub, n_pad, window, len(lam))
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
-        fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)))
+        fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)), breaks_A)
         per_profile.append((first_edge, lam, weight, _mu_tables(scene, lam), fine_lam, fine_weight,
                             _mu_tables(scene, fine_lam)))
     groups = []

@@ -10,7 +10,7 @@ traced ray lands. No JAX here on purpose: this module must stay independent of t
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -25,12 +25,14 @@ _FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 @dataclasses.dataclass(frozen=True)
 class ReferenceLayer:
-    """One layer: width along x (µm), SLD (1e-6 Å^-2), mu(λ) = mu_per_m + mu_per_m_per_A·λ[Å] (1/m)."""
+    """One layer: width along x (µm), SLD (1e-6 Å^-2), mu(λ) = mu_per_m + mu_per_m_per_A·λ[Å]
+    + mu_table(λ) (1/m); ``mu_table`` maps wavelengths (n,) Å to 1/m (Bragg edges), or None."""
 
     thickness_um: float
     sld_e6_per_A2: float
     mu_per_m: float
     mu_per_m_per_A: float = 0.0
+    mu_table: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,10 +107,10 @@ def _sample_aperture(rng: np.random.Generator, aperture: str, d_um: float, n: in
     return 0.5 * d_um * np.sqrt(rng.random(n)) * np.cos(2.0 * np.pi * rng.random(n))
 
 
-def _trace(stack: _Stack, u, w, a, b, lam, r_to, side, rng):
+def _trace(stack: _Stack, u, w, a, b, lam, mu_table, r_to, side, rng):
     """Trace rays sitting on the stack's outer surface, about to enter layer ``r_to``.
 
-    ``side`` marks a face normal to u (else normal to w); ``rng`` draws Fresnel reflections (None:
+    ``mu_table``: (n, K+1) tabulated attenuation per ray and medium (1/µm). ``side`` marks a face normal to u (else normal to w); ``rng`` draws Fresnel reflections (None:
     no partial reflection). Returns the exit state (u, w, a, b, weight), each (n,), with weight 0 for
     rays dropped at the event cap, and the number dropped.
     """
@@ -134,7 +136,8 @@ def _trace(stack: _Stack, u, w, a, b, lam, r_to, side, rng):
         gone = k == vac
         out[:, idx[gone]] = np.stack((u, w, a, b, wt))[:, gone]
         keep = ~gone
-        idx, u, w, a, b, wt, lam, lam2, k = (x[keep] for x in (idx, u, w, a, b, wt, lam, lam2, k))
+        idx, u, w, a, b, wt, lam, lam2, k, mu_table = (
+            x[keep] for x in (idx, u, w, a, b, wt, lam, lam2, k, mu_table))
         if idx.size == 0:
             break
         # Move to the next face of layer k, attenuating along the way.
@@ -143,7 +146,8 @@ def _trace(stack: _Stack, u, w, a, b, lam, r_to, side, rng):
             sw = np.where(b > 0, (h - w) / b, np.where(b < 0, (-h - w) / b, np.inf))
         side = su < sw
         s = np.maximum(np.minimum(su, sw), 0.0)
-        wt = wt * np.exp(-(stack.mu0_per_um[k] + stack.mu1_per_um_per_A[k] * lam) * s)
+        mu = stack.mu0_per_um[k] + stack.mu1_per_um_per_A[k] * lam + mu_table[np.arange(k.size), k]
+        wt = wt * np.exp(-mu * s)
         u = np.where(side, np.where(a > 0, bounds[k + 1], bounds[k]), u + s * a)
         w = np.where(side, w + s * b, np.where(b > 0, h, -h))
         nb = k + np.where(a > 0, 1, -1)
@@ -151,7 +155,7 @@ def _trace(stack: _Stack, u, w, a, b, lam, r_to, side, rng):
     return out, idx.size
 
 
-def _land(stack, geometry, x_aim, x0, ex, ez, lam, rng):
+def _land(stack, geometry, x_aim, x0, ex, ez, lam, mu_table, rng):
     """Detector x (µm) and weight of rays along (x0, z0) + t (ex, ez) aimed at x_aim, through the sample."""
     cos_p, sin_p, centre, z0, delta = geometry
     u0, w0 = (x0 - centre) * cos_p - z0 * sin_p, (x0 - centre) * sin_p + z0 * cos_p
@@ -173,7 +177,7 @@ def _land(stack, geometry, x_aim, x0, ex, ez, lam, rng):
     n_layers = stack.bounds_um.size - 1
     layer = np.clip(np.searchsorted(stack.bounds_um, u, side="right") - 1, 0, n_layers - 1)
     layer = np.where(side, np.where(a > 0, 0, n_layers - 1), layer)
-    (u, w, a, b, wt), n_dropped = _trace(stack, u, w, a, b, lam[hit], layer, side, rng)
+    (u, w, a, b, wt), n_dropped = _trace(stack, u, w, a, b, lam[hit], mu_table[hit], layer, side, rng)
     x, z = centre + u * cos_p + w * sin_p, -u * sin_p + w * cos_p
     dx, dz = a * cos_p + b * sin_p, -a * sin_p + b * cos_p
     forward = dz > 0  # rays reflected back upstream never reach the detector
@@ -256,7 +260,9 @@ def trace_reference(
         ex, ez = x_aim - x_ap, delta - source_z
         norm = np.hypot(ex, ez)
         ex, ez = ex / norm, ez / norm
-        rays = (x_aim, x_aim - (delta - z0) * ex / ez, ex, ez, lam)
+        mu_table = 1e-6 * np.stack([layer.mu_table(lam) if layer.mu_table else np.zeros(n)
+                                    for layer in layers] + [np.zeros(n)], axis=1)  # (n, K+1) 1/µm
+        rays = (x_aim, x_aim - (delta - z0) * ex / ez, ex, ez, lam, mu_table)
         x_s, w_s, dropped = _land(stack, geometry, *rays, rng_fresnel if fresnel else None)
         x_a, w_a, _ = _land(no_sld, geometry, *rays, None)
         n_dropped += dropped

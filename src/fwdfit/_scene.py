@@ -18,7 +18,7 @@ from ._errors import FwdfitError
 from ._limits import (DOMAIN, MAX_DIVERGENCE, MAX_PIXELS, MAX_PSF_PIXELS, SEE, check_domain,
                       check_domain_rows)
 from ._materials import MaterialConstants, constants_from_formula, constants_from_ncrystal
-from ._spectrum import GaussianLine, Spectrum, TabulatedSpectrum
+from ._spectrum import BandSpectrum, GaussianLine, Spectrum, TabulatedSpectrum
 from ._tables import read_columns
 
 try:
@@ -31,7 +31,10 @@ DEFAULT_ACCURACY = 1e-3
 
 @dataclasses.dataclass(frozen=True)
 class Layer:
-    """One layer of the stack; ``same_as`` names the earlier layer it is tied to."""
+    """One layer of the stack; ``same_as`` names the earlier layer it is tied to.
+
+    ``density_scale`` multiplies the SLD and the whole mu(lambda) (table included).
+    """
 
     name: str
     thickness_um: float
@@ -40,6 +43,7 @@ class Layer:
     mu_per_m_per_A: float = 0.0
     same_as: str | None = None
     material: MaterialConstants | None = None
+    density_scale: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,11 +108,12 @@ class Scene:
 
 _SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "drift_um_per_mm", "layers"}
 _LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
-               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as"}
+               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as", "density_scale"}
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
 _PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um",
                  "shift_um", "norm", "background"}
+_BAND_KEYS = ("lambda_min_A", "lambda_max_A")
 _TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
 
 
@@ -293,6 +298,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
                                     if "mu_per_m" not in explicit else 0.0),
         material=material,
+        density_scale=reader.number("density_scale", 1.0, positive=True),
     )
 
 
@@ -340,16 +346,28 @@ def _spectra(path: Path, table: Any) -> dict[str, Spectrum]:
     spectra = {}
     for name, entry in table.items():
         where = f"spectra.{name}"
-        reader = _Reader(path, entry, where, {"file", "wavelength_A", "fwhm_rel"})
-        if not reader.has("file"):  # the domain's limits hold GaussianLine's own checks
+        reader = _Reader(path, entry, where, {"file", "wavelength_A", "fwhm_rel", *_BAND_KEYS})
+        band = [key for key in _BAND_KEYS if reader.has(key)]
+        if band and (reader.has("wavelength_A") or reader.has("fwhm_rel")):
+            reader.fail(where, "a band (lambda_min_A, lambda_max_A) and a line "
+                        "(wavelength_A, fwhm_rel) cannot be combined")
+        if band and len(band) < 2:
+            reader.fail(reader.key(({*_BAND_KEYS} - {*band}).pop()), "missing (a band needs both limits)")
+        if not reader.has("file") and not band:  # the domain's limits hold GaussianLine's own checks
             spectra[name] = GaussianLine(reader.number("wavelength_A", positive=True),
                                          reader.number("fwhm_rel", minimum=0.0))
             continue
-        table = path.parent / reader.string("file")
+        limits = [reader.number(key, positive=True) for key in _BAND_KEYS] if band else []
+        for key, value in zip(_BAND_KEYS, limits):
+            check_domain("lambda_A", value, f"{path}: {reader.key(key)}")
         try:  # the table's errors name the table; this names the scene and key too
-            columns = read_columns(table, ["lambda_A", "weight"])
-            check_domain_rows("lambda_A", columns["lambda_A"], f"{table}: lambda_A")
-            spectra[name] = TabulatedSpectrum(columns["lambda_A"], columns["weight"], table)
+            table = None
+            if reader.has("file"):
+                file = path.parent / reader.string("file")
+                columns = read_columns(file, ["lambda_A", "weight"])
+                check_domain_rows("lambda_A", columns["lambda_A"], f"{file}: lambda_A")
+                table = TabulatedSpectrum(columns["lambda_A"], columns["weight"], file)
+            spectra[name] = BandSpectrum(*limits, table) if band else table
         except FwdfitError as error:
             reader.fail(where, str(error))
     return spectra

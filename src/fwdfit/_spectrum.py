@@ -1,4 +1,4 @@
-"""Neutron spectra (tables or Gaussian lines) and their wavelength quadrature."""
+"""Neutron spectra (tables, Gaussian lines, wavelength bands) and their wavelength quadrature."""
 
 from __future__ import annotations
 
@@ -84,21 +84,74 @@ class GaussianLine:
         return float(self.wavelength_A)
 
 
-Spectrum = TabulatedSpectrum | GaussianLine
+@dataclasses.dataclass(frozen=True)
+class BandSpectrum:
+    """A wavelength bin [lambda_min_A, lambda_max_A] (Å): uniform density, or ``table``'s, inside; zero outside.
+
+    A time-of-flight bin. ``table``: an optional spectrum weighting the band (its file is kept
+    for writing scenes back).
+    """
+
+    lambda_min_A: float
+    lambda_max_A: float
+    table: TabulatedSpectrum | None = None
+
+    def __post_init__(self):
+        if not 0 < self.lambda_min_A < self.lambda_max_A:
+            raise FwdfitError("a band needs 0 < lambda_min_A < lambda_max_A, got "
+                              f"{self.lambda_min_A:g} and {self.lambda_max_A:g}")
+        if self.table is not None and not np.any(self.table.density(
+                np.linspace(self.lambda_min_A, self.lambda_max_A, 1001)) > 0):
+            raise FwdfitError(f"the spectrum table is zero across the band {self.lambda_min_A:g} "
+                              f"to {self.lambda_max_A:g} Å")
+
+    def density(self, lambda_A: np.ndarray) -> np.ndarray:
+        lambda_A = np.asarray(lambda_A, dtype=float)
+        inside = (lambda_A >= self.lambda_min_A) & (lambda_A <= self.lambda_max_A)
+        weight = 1.0 if self.table is None else self.table.density(lambda_A)
+        return np.where(inside, weight, 0.0)
+
+    @property
+    def support_A(self) -> tuple[float, float]:
+        return float(self.lambda_min_A), float(self.lambda_max_A)
+
+    @property
+    def mean_wavelength_A(self) -> float:
+        lam = np.linspace(*self.support_A, 4001)
+        density = self.density(lam)
+        return float(np.sum(lam * density) / np.sum(density))
 
 
-def wavelength_quadrature(spectrum: Spectrum, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+Spectrum = TabulatedSpectrum | GaussianLine | BandSpectrum
+
+
+def segment_edges(lo: float, hi: float, n_segments: int, breaks_A=()) -> np.ndarray:
+    """Edges (n,) of ``max(n_segments, k + 1)`` segments of [lo, hi] with every one of the k
+    ``breaks_A`` inside (lo, hi) an edge; the pieces between breaks are cut into equal
+    segments, each extra segment going to the piece whose segments are longest."""
+    cuts = np.concatenate([[lo], np.unique([b for b in breaks_A if lo < b < hi]), [hi]])
+    lengths = np.diff(cuts)
+    counts = np.ones(lengths.size, dtype=int)
+    for _ in range(n_segments - counts.sum()):
+        counts[np.argmax(lengths / counts)] += 1
+    return np.concatenate([np.linspace(a, b, n + 1)[:-1] for a, b, n in zip(cuts[:-1], cuts[1:], counts)]
+                          + [[hi]])
+
+
+def wavelength_quadrature(spectrum: Spectrum, n_nodes: int, breaks_A=()) -> tuple[np.ndarray, np.ndarray]:
     """Nodes (Å) and normalised weights that integrate smooth functions against the spectrum.
 
-    Composite Gauss-Legendre with 4 points per equal segment of the spectrum's
-    support; a line narrower than 1e-6 of its wavelength is a single node.
-    Returns two arrays of shape ``(n,)``, ``n`` the multiple of 4 at or above ``n_nodes``.
+    Composite Gauss-Legendre with 4 points per segment of the spectrum's support,
+    segments equal between the ``breaks_A`` (Å: wavelengths where the integrand jumps,
+    such as Bragg edges) inside the support, which are always segment edges; a line
+    narrower than 1e-6 of its wavelength is a single node. Returns two arrays of shape
+    ``(n,)``, ``n`` the multiple of 4 at or above ``n_nodes`` (above it, 4 per piece
+    between breaks, when there are more pieces than segments).
     """
     if isinstance(spectrum, GaussianLine) and spectrum.fwhm_rel < 1e-6:
         return np.array([spectrum.wavelength_A]), np.array([1.0])
     n_segments = max(1, -(-n_nodes // _GAUSS_POINTS_PER_SEGMENT))
-    lo, hi = spectrum.support_A
-    edges = np.linspace(lo, hi, n_segments + 1)
+    edges = segment_edges(*spectrum.support_A, n_segments, breaks_A)
     t, w = np.polynomial.legendre.leggauss(_GAUSS_POINTS_PER_SEGMENT)
     half = 0.5 * np.diff(edges)[:, None]
     nodes = (0.5 * (edges[:-1] + edges[1:]))[:, None] + half * t

@@ -314,8 +314,9 @@ def _attenuations(scene: Scene, free, T, placed, thickness, model: ForwardModel,
             lam, weight, table = _wavelengths(model, i)
             slope = layers[layer].mu_per_m_per_A
             slope = 0.0 if math.isnan(slope) else slope
+            scale = layers[layer].density_scale  # mu = scale (mu_per_m + slope lambda + table)
             estimates.append(_attenuation(float(np.median(T[i][plateau])) / level, weight, depth_um,
-                                          slope * lam + table[:, layer]))
+                                          scale * (slope * lam + table[:, layer])) / scale)
         finite = [e for e in estimates if math.isfinite(e)]
         if finite:
             values[p.name] = float(np.median(finite))

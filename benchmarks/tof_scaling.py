@@ -1,0 +1,110 @@
+"""Time-of-flight scaling: forward-model cost against the number of wavelength bins.
+
+    python benchmarks/tof_scaling.py [--bins 25 100 400] [--pixels 1000] [--quick]
+
+A 1 mm NCrystal Al block (Al_sg225.ncmat, 2 mm deep, tilt 0.24 deg) seen in N band
+spectra (``lambda_min_A``/``lambda_max_A``) tiling 1.5-6 Å, so several bins straddle
+the Bragg edges; every bin is one profile of ``--pixels`` pixels (2.4 µm) at 5 mm.
+For each N: the plan (build_model), tracing, XLA compile and one evaluation of T and
+T_att for all bins (float64, mean of repeats), and the number of profile groups (one
+compiled plan each). Writes benchmarks/results/tof_scaling.json (quick: results/quick/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+from _results import machine_record, results_dir
+
+LAMBDA_RANGE_A = (1.5, 6.0)
+PIXEL_UM = 2.4
+
+SCENE_HEAD = """
+[sample]
+depth_mm = 2.0
+tilt_deg = 0.24
+
+[[sample.layers]]
+name = "Al"
+thickness_um = 1000
+ncrystal = "Al_sg225.ncmat"
+
+[instrument]
+aperture = "circular"
+aperture_mm = 20.0
+aperture_distance_m = 10.0
+pixel_um = {pixel_um}
+"""
+
+
+def scene_text(n_bins: int, pixels: int) -> str:
+    """The scene: one band spectrum and one profile per bin."""
+    lo, hi = LAMBDA_RANGE_A
+    edges = [lo + (hi - lo) * i / n_bins for i in range(n_bins + 1)]
+    half = 0.5 * pixels * PIXEL_UM
+    parts = [SCENE_HEAD.format(pixel_um=PIXEL_UM)]
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        parts.append(f'[spectra.b{i:03d}]\nlambda_min_A = {a:.6f}\nlambda_max_A = {b:.6f}\n')
+    for i in range(n_bins):
+        parts.append(f'[[profiles]]\nname = "b{i:03d}"\ndistance_mm = 5.0\nspectrum = "b{i:03d}"\n'
+                     f'x_min_um = {-half}\nx_max_um = {half}\n')
+    return "\n".join(parts)
+
+
+def measure(n_bins: int, pixels: int, repeats: int) -> dict:
+    import equinox as eqx
+    import jax
+
+    import fwdfit
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "scene.toml"
+        path.write_text(scene_text(n_bins, pixels))
+        scene = fwdfit.load_scene(path)
+    start = time.perf_counter()
+    model = fwdfit.build_model(scene)
+    plan_s = time.perf_counter() - start
+    params = fwdfit.initial_params(scene)
+    evaluate = eqx.filter_jit(lambda m, p: m(p))
+    start = time.perf_counter()
+    lowered = evaluate.lower(model, params)
+    trace_s = time.perf_counter() - start
+    start = time.perf_counter()
+    compiled = lowered.compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(model, params))
+    start = time.perf_counter()
+    for _ in range(repeats):
+        jax.block_until_ready(compiled(model, params))
+    eval_s = (time.perf_counter() - start) / repeats
+    return {"bins": n_bins, "pixels": pixels, "groups": len(model.groups),
+            "wavelength_nodes": sorted({int(g.wavelength_A.shape[1]) for g in model.groups}),
+            "plan_s": round(plan_s, 3), "trace_s": round(trace_s, 3), "compile_s": round(compile_s, 3),
+            "eval_s": round(eval_s, 4), "eval_ms_per_bin": round(1e3 * eval_s / n_bins, 3)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--bins", type=int, nargs="+", default=[25, 100, 400])
+    parser.add_argument("--pixels", type=int, default=1000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="25 bins only")
+    args = parser.parse_args()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    rows = []
+    for n in [25] if args.quick else args.bins:
+        rows.append(measure(n, args.pixels, args.repeats))
+        print(json.dumps(rows[-1]), flush=True)
+    out = results_dir(args.quick) / "tof_scaling.json"
+    out.write_text(json.dumps({"rows": rows, "machine": machine_record()}, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
