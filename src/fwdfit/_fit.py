@@ -112,6 +112,9 @@ class FitResult:
 
 
 def _data(scene: Scene):
+    images = [p.name for p in scene.profiles if p.image is not None]
+    if images:
+        raise FwdfitError(f"{scene.path}: profile {images[0]!r} is an image: fit it with fwdfit fit-image")
     missing = [p.name for p in scene.profiles if p.T is None]
     if missing:
         raise FwdfitError(f"{scene.path}: profile {missing[0]!r} has no measured data (file = ...)")

@@ -1,0 +1,372 @@
+"""Fit a whole normalised image row by row: material shared by all rows, geometry per row.
+
+A curved or drifting edge moves the stack's centre from row to row; everything else
+(thicknesses, SLDs, attenuation, tilt) is the sample's and shared. The fit, in rounds:
+
+1. each row's centre from its outer edges (``_starts.outer_edges``); rows without an
+   edge, or mostly masked, are flagged and left out;
+2. the shared parameters from a joint fit (``Fitter``) of a few averaged profiles: the
+   rows, shifted by whole pixels onto a common centre, are averaged in ``_BINS`` bins of
+   their sub-pixel offset, each bin a profile whose sample sits at the bin's offset, so
+   the average blurs nothing the model does not know of;
+3. each row's centre with the shared values fixed: one compiled program (``Predictor``)
+   for every row, Levenberg-Marquardt over all rows of a chunk at once
+   (``levenberg_marquardt(..., independent=True)``), each row started from its edges;
+4. step 2 again with the fitted centres (no recompilation), then step 3 again.
+
+T_att of a row is the model's attenuation-only profile at that row's centre, and
+T_corrected = T - (T_model - T_att), as in the profile fit. Units: µm, as the scene keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ._errors import FwdfitError
+from ._fit import FitResult, Fitter
+from ._least_squares import levenberg_marquardt
+from ._parameters import assembler, free_parameters
+from ._plan import build_model
+from ._predict import Predictor
+from ._scene import Profile, Scene, load_scene
+from ._starts import _blur_um, noise_sigma, outer_edges
+
+CENTRE = "sample.centre_um"
+_BINS = 4  # sub-pixel offset bins of the averaged profiles (a quarter pixel each)
+_MAX_MASKED = 0.5  # a row with more of its pixels masked is not fitted
+_WIDTH_TOLERANCE = 0.1  # a row whose edges are this much (relative) off the median width has no edge
+_ROUNDS = 2  # shared fit + per-row fit, repeated with the fitted centres
+_CHUNK_ROWS = 64  # rows solved together (one progress line each)
+_ROW_STEPS = 30  # solver steps per row
+_ROW_TOLERANCE = 1e-2  # stop when a step moves the centre by less than this many standard errors
+_TYPICAL_CENTRE_STEPS = 5.0  # largest solver step of a centre, in its typical steps (µm)
+_POOR_LIMIT = 2.0  # a row's fit is poor when chi2/pixel exceeds this ...
+_POOR_SIGNIFICANCE = 5.0  # ... by this many standard deviations of chi-square
+
+# rows.csv flags (sums of): the row was not fitted, or its fit is not to be trusted
+FLAG_NO_EDGE = 1
+FLAG_MASKED = 2
+FLAG_POOR_FIT = 4
+FLAG_NOT_CONVERGED = 8
+_UNFITTED = FLAG_NO_EDGE | FLAG_MASKED
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageFit:
+    """The fit of one image (rows, n): shared values from ``shared`` (a FitResult of the
+    averaged profiles), per row (rows,) the centre (NaN: not fitted), its error, chi-square,
+    fitted pixels and flags; images (rows, n) of the data, model, T_att and T_corrected
+    (NaN where masked, and T_att in rows not fitted)."""
+
+    name: str
+    x_um: np.ndarray
+    shared: FitResult
+    centre_um: np.ndarray
+    centre_err_um: np.ndarray
+    edge_centre_um: np.ndarray  # from the edges, the fit's start (NaN: no edge)
+    chi2: np.ndarray
+    n_pixels: np.ndarray
+    steps: np.ndarray
+    flags: np.ndarray
+    T: np.ndarray
+    sigma: np.ndarray
+    T_model: np.ndarray
+    T_att: np.ndarray
+    T_corrected: np.ndarray
+    sigma_from_data: bool
+    n_masked: int
+    compile_time_s: float
+    wall_time_s: float  # after compilation
+    row_time_s: float  # the per-row fits of the last round alone
+    rounds: int
+
+    @property
+    def fitted(self) -> np.ndarray:
+        return (self.flags & _UNFITTED) == 0
+
+    @property
+    def good(self) -> np.ndarray:
+        return self.flags == 0
+
+    @property
+    def chi2_reduced(self) -> float:
+        """Over every fitted row: chi-square per degree of freedom (one centre per row)."""
+        rows = self.fitted
+        dof = int(self.n_pixels[rows].sum()) - int(rows.sum()) - len(self.shared.names)
+        return float(self.chi2[rows].sum()) / max(dof, 1)
+
+    @property
+    def rows_per_s(self) -> float:
+        return float(self.fitted.sum()) / max(self.row_time_s, 1e-9)
+
+    def summary(self) -> str:
+        flagged = int((self.flags != 0).sum())
+        return (f"{self.name}: {int(self.fitted.sum())} of {len(self.flags)} rows fitted, {flagged} flagged; "
+                f"{self.n_masked} masked pixels; chi2/dof {self.chi2_reduced:.4g}; "
+                f"rows {self.rows_per_s:.1f}/s")
+
+
+def _image_profile(scene: Scene) -> Profile:
+    images = [p for p in scene.profiles if p.image is not None]
+    if len(scene.profiles) != 1 or len(images) != 1:
+        raise FwdfitError(f"{scene.path}: fit-image needs exactly one profile, with image = ..., "
+                          f"got {len(scene.profiles)} profile(s), {len(images)} of them image(s)")
+    return images[0]
+
+
+def _shared_vary(scene: Scene) -> tuple[str, ...]:
+    """The scene's [fit] vary with the centre (per row) added; per-profile keys refused."""
+    vary = tuple(scene.fit.vary)
+    profile_keys = [v for v in vary if v.startswith("profiles.")]
+    if profile_keys:
+        raise FwdfitError(f"{scene.path}: fit.vary: {profile_keys[0]!r}: fit-image fits sample and layer "
+                          "parameters (and the centre per row), not profile keys")
+    return vary if CENTRE in vary else vary + (CENTRE,)
+
+
+def _row_sigma(profile: Profile) -> tuple[np.ndarray, bool]:
+    """Per-pixel errors (rows, n), inf where masked; from the image's noise if not given."""
+    masked = np.isnan(profile.image)
+    if profile.image_err is not None:
+        return np.where(masked, np.inf, profile.image_err), False
+    noise = [noise_sigma(row[np.isfinite(row)]) for row in profile.image if np.isfinite(row).sum() > 2]
+    sigma = float(np.median(noise)) if noise else 0.0
+    if not sigma > 0:
+        raise FwdfitError(f"profile {profile.name!r}: no image_err and no noise in the image to estimate it from")
+    return np.where(masked, np.inf, sigma), True
+
+
+def _filled(row: np.ndarray) -> np.ndarray:
+    """A row with its masked (NaN) pixels linearly interpolated from their neighbours."""
+    good = np.isfinite(row)
+    if good.all():
+        return row
+    index = np.arange(len(row))
+    return np.interp(index, index[good], row[good])
+
+
+def edge_centres(scene: Scene, profile: Profile) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's centre from its outer edges (rows,) µm, NaN where none, and the flags (rows,)."""
+    image = profile.image
+    pixel = scene.instruments[profile.instrument].pixel_um
+    blur = _blur_um(scene, profile)
+    centres, widths = np.full(len(image), np.nan), np.full(len(image), np.nan)
+    flags = np.zeros(len(image), int)
+    for r, row in enumerate(image):
+        if np.isnan(row).mean() > _MAX_MASKED:
+            flags[r] = FLAG_MASKED
+            continue
+        edges = outer_edges(profile.x_um, _filled(row), blur, pixel)
+        if edges is None:
+            flags[r] = FLAG_NO_EDGE
+            continue
+        centres[r], widths[r] = 0.5 * (edges[0] + edges[1]), edges[1] - edges[0]
+    found = np.isfinite(widths)
+    if found.any():
+        off = np.abs(widths - np.median(widths[found])) > _WIDTH_TOLERANCE * np.median(widths[found])
+        flags[found & off] = FLAG_NO_EDGE
+        centres[found & off] = np.nan
+    if not np.isfinite(centres).any():
+        raise FwdfitError(f"{profile.image_file}: no sample edge found in any of its {len(image)} rows")
+    return centres, flags
+
+
+@dataclasses.dataclass(frozen=True)
+class _Binning:
+    """Rows shifted by whole pixels onto ``centre_um`` and averaged in sub-pixel offset bins."""
+
+    centre_um: float
+    margin: int  # columns cropped on each side (the largest whole-pixel shift, plus two)
+    bins: tuple[int, ...]  # the bins that hold rows (fixed after the first round)
+
+    @staticmethod
+    def of(centres: np.ndarray, pixel_um: float) -> _Binning:
+        centre = float(np.median(centres[np.isfinite(centres)]))
+        offsets = (centres[np.isfinite(centres)] - centre) / pixel_um
+        whole, fraction = np.round(offsets), offsets - np.round(offsets)
+        bins = np.clip(np.floor((fraction + 0.5) * _BINS), 0, _BINS - 1).astype(int)
+        return _Binning(centre, int(np.max(np.abs(whole))) + 2, tuple(sorted(set(bins.tolist()))))
+
+    def bin_offset_px(self, k: int) -> float:
+        return (k + 0.5) / _BINS - 0.5
+
+    def assign(self, centres: np.ndarray, pixel_um: float) -> tuple[np.ndarray, np.ndarray]:
+        """Whole-pixel shift (rows,) and bin (rows,) of each row: the existing bin nearest its
+        offset (a bin in the next pixel counts, with the whole shift changed)."""
+        offsets = (centres - self.centre_um) / pixel_um
+        options = np.array([[self.bin_offset_px(k) + w for w in (-1, 0, 1)] for k in self.bins])  # (B, 3)
+        whole = np.round(offsets)
+        fraction = offsets - whole
+        distance = np.abs(fraction[:, None, None] - options[None])  # (rows, B, 3)
+        flat = np.argmin(distance.reshape(len(offsets), -1), axis=1)
+        b, w = np.unravel_index(flat, options.shape)
+        shift = (whole + np.array([-1, 0, 1])[w]).astype(int)
+        shift = np.clip(shift, -(self.margin), self.margin)
+        return shift, np.asarray(self.bins)[b]
+
+    def profiles(self, profile: Profile, centres, use, sigma, pixel_um) -> tuple[list, list, list]:
+        """Averaged data (T, T_err) per bin and the bin profiles (x_um cropped, shift_um set)."""
+        shift, which = self.assign(np.where(use, centres, self.centre_um), pixel_um)
+        n = profile.image.shape[1]
+        columns = np.arange(self.margin, n - self.margin)
+        weight = np.where(np.isfinite(sigma), 1.0 / sigma ** 2, 0.0)
+        data = np.where(np.isfinite(profile.image), profile.image, 0.0)
+        T, T_err, profiles = [], [], []
+        for k in self.bins:
+            rows = np.flatnonzero(use & (which == k))
+            taken = columns[None, :] + shift[rows, None]  # (rows_k, n_cropped)
+            w = weight[rows[:, None], taken]
+            total = w.sum(axis=0)
+            mean = np.where(total > 0, (w * data[rows[:, None], taken]).sum(axis=0) / np.where(total > 0, total, 1), np.nan)
+            if not np.isfinite(mean).any():  # an empty bin: its rows all left out this round
+                mean, total = np.ones(len(columns)), np.zeros(len(columns))
+            T.append(_filled(mean))
+            # a pixel no row covers stays in the table (the model needs its grid) with no weight
+            T_err.append(np.where(total > 0, 1.0 / np.sqrt(np.where(total > 0, total, 1)), 1e6))
+            profiles.append(dataclasses.replace(
+                profile, name=f"{profile.name}.bin{k}", x_um=profile.x_um[columns], T=T[-1], T_err=T_err[-1],
+                shift_um=profile.shift_um + self.bin_offset_px(k) * pixel_um, image=None, image_err=None))
+        return T, T_err, profiles
+
+
+class _RowSolver:
+    """Every row's centre with the shared values fixed: one compiled program for all rows."""
+
+    def __init__(self, scene: Scene, profile: Profile, shared: FitResult, fitter: Fitter, vary, accuracy):
+        row_profile = dataclasses.replace(profile, image=None, image_err=None, T=None, T_err=None)
+        self.scene = dataclasses.replace(shared.scene, profiles=(row_profile,), path=scene.path)
+        self.free = free_parameters(self.scene, vary=vary, bounds=scene.fit.bounds)
+        tilt = next((p for p in fitter.free if p.name == "sample.tilt_deg"), None)
+        self.model = build_model(self.scene, accuracy, free=[p.name for p in self.free],
+                                 tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
+        self.predict = Predictor(self.model, assembler(self.scene, self.free), len(self.free))
+        self.compile_time_s = self.predict.compile_time_s
+        self.centre = [p.name for p in self.free].index(CENTRE)
+
+    def values(self, shared: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        rows = np.tile(shared, (len(centres), 1))
+        rows[:, self.centre] = centres
+        return rows
+
+    def solve(self, shared: np.ndarray, data: np.ndarray, sigma: np.ndarray, starts: np.ndarray):
+        """Centres (k,), their errors (k,), chi-square (k,), steps (k,), converged (k,) of
+        the rows data (k, n) with errors sigma (k, n) (inf: masked), from starts (k,)."""
+        parameter = self.free[self.centre]
+        data = np.where(np.isfinite(sigma), data, 0.0)
+
+        def residuals(u, problems):
+            T_model, _ = self.predict(self.values(shared, parameter.from_unit(u[:, 0])))
+            return (T_model - data[problems]) / sigma[problems]
+
+        u0 = parameter.to_unit(starts)[:, None]
+        solution = levenberg_marquardt(residuals, u0, np.array([_TYPICAL_CENTRE_STEPS]),
+                                       tolerance=_ROW_TOLERANCE, max_steps=_ROW_STEPS, independent=True)
+        centres = parameter.from_unit(solution.u[:, 0])
+        curvature = np.sum(solution.jacobian[:, :, 0] ** 2, axis=1)
+        errors = parameter.value_per_unit(solution.u[:, 0]) / np.sqrt(np.maximum(curvature, 1e-300))
+        return centres, errors, solution.chi2, solution.steps, solution.converged
+
+
+def _progress_line(enabled: bool) -> Callable[[str], None]:
+    def say(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+    return say if enabled else (lambda text: None)
+
+
+def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int = _ROUNDS,
+              progress: bool = False) -> ImageFit:
+    """Fit the one image profile of a scene: shared [fit] parameters, a centre per row.
+
+    accuracy: the model's target RMS error in T. rounds: shared fit + per-row fit, each
+    round starting from the last one's centres. progress: rows done, rate and time left
+    on stderr. Needs float64 (``jax_enable_x64``).
+    """
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    if rounds < 1:
+        raise FwdfitError(f"rounds must be >= 1, got {rounds}")
+    say = _progress_line(progress)
+    profile = _image_profile(scene)
+    vary = _shared_vary(scene)
+    pixel = scene.instruments[profile.instrument].pixel_um
+    sigma, sigma_from_data = _row_sigma(profile)
+    masked = np.isnan(profile.image)
+    begin = time.perf_counter()
+    edges, flags = edge_centres(scene, profile)
+    n_rows = len(edges)
+    say(f"{profile.name}: {n_rows} rows x {profile.image.shape[1]} pixels, {int(masked.sum())} masked pixels; "
+        f"edges found in {int(np.isfinite(edges).sum())} rows")
+    binning = _Binning.of(edges, pixel)
+    use = np.isfinite(edges)
+    centres = edges.copy()
+    fitter = rows = None
+    compile_time = 0.0
+    shared = None
+    for round_ in range(rounds):
+        _, _, profiles = binning.profiles(profile, centres, use, sigma, pixel)
+        if fitter is None:
+            bin_scene = dataclasses.replace(
+                scene, sample=dataclasses.replace(scene.sample, centre_um=binning.centre_um),
+                profiles=tuple(profiles))
+            fitter = Fitter(bin_scene, vary=vary, accuracy=accuracy)
+            compile_time += fitter.compile_time_s
+            shared = fitter()
+        else:
+            start = shared.values
+            shared = fitter(T=[p.T for p in profiles], T_err=[p.T_err for p in profiles], start=start)
+        say(f"round {round_ + 1}: shared fit of {int(use.sum())} rows in {len(profiles)} averaged profiles, "
+            f"chi2/dof {shared.chi2_reduced:.4g}")
+        if rows is None:
+            rows = _RowSolver(scene, profile, shared, fitter, vary, accuracy)
+            compile_time += rows.compile_time_s
+        fitted_centre = shared[CENTRE][0]
+        todo = np.flatnonzero((flags & _UNFITTED) == 0)
+        # each row starts where its edges put it, moved by the edges' common bias (shared fit)
+        starts = (edges if round_ == 0 else centres) + (fitted_centre - binning.centre_um if round_ == 0 else 0.0)
+        row_begin = time.perf_counter()
+        out = _solve_rows(rows, shared.values, profile.image, sigma, todo, starts, say, round_ + 1)
+        row_time = time.perf_counter() - row_begin
+        centres = np.full(n_rows, np.nan)
+        centre_err, chi2, steps, converged = (np.full(n_rows, np.nan), np.full(n_rows, np.nan),
+                                              np.zeros(n_rows, int), np.zeros(n_rows, bool))
+        centres[todo], centre_err[todo], chi2[todo], steps[todo], converged[todo] = out
+        n_pixels = np.isfinite(sigma).sum(axis=1)
+        if sigma_from_data:
+            centre_err *= np.sqrt(chi2 / np.maximum(n_pixels - 1, 1))
+        flags = flags & _UNFITTED
+        z = (chi2 - n_pixels) / np.sqrt(2.0 * np.maximum(n_pixels, 1))
+        poor = (chi2 / np.maximum(n_pixels, 1) > _POOR_LIMIT) & (z > _POOR_SIGNIFICANCE)
+        flags[todo] |= np.where(poor[todo], FLAG_POOR_FIT, 0) | np.where(converged[todo], 0, FLAG_NOT_CONVERGED)
+        use = flags == 0
+        if not use.any():
+            raise FwdfitError(f"{profile.image_file}: no row is fitted well (every row flagged)")
+    T_model, T_att = np.full(profile.image.shape, np.nan), np.full(profile.image.shape, np.nan)
+    fitted = (flags & _UNFITTED) == 0
+    T_model[fitted], T_att[fitted] = rows.predict(rows.values(shared.values, centres[fitted]))
+    T_corrected = np.where(fitted[:, None], profile.image - (T_model - T_att), profile.image)
+    wall = time.perf_counter() - begin - compile_time
+    result = ImageFit(profile.name, profile.x_um, shared, centres, centre_err, edges, chi2, n_pixels, steps, flags,
+                      profile.image, sigma, T_model, T_att, T_corrected, sigma_from_data, int(masked.sum()),
+                      compile_time, wall, row_time, rounds)
+    say(result.summary())
+    return result
+
+
+def _solve_rows(rows: _RowSolver, shared, image, sigma, todo, starts, say, round_: int):
+    """The per-row solver over the rows ``todo`` in chunks, with a progress line per chunk."""
+    parts = []
+    begin = time.perf_counter()
+    for first in range(0, len(todo), _CHUNK_ROWS):
+        chunk = todo[first:first + _CHUNK_ROWS]
+        parts.append(rows.solve(shared, image[chunk], sigma[chunk], starts[chunk]))
+        done = first + len(chunk)
+        rate = done / max(time.perf_counter() - begin, 1e-9)
+        say(f"round {round_}: rows {done}/{len(todo)}, {rate:.1f} rows/s, "
+            f"{(len(todo) - done) / rate:.0f} s left")
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(5))
