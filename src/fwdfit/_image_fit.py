@@ -48,6 +48,7 @@ _ROW_TOLERANCE = 1e-2  # stop when a step moves the centre by less than this man
 _TYPICAL_CENTRE_STEPS = 5.0  # largest solver step of a centre, in its typical steps (µm)
 _POOR_LIMIT = 2.0  # a row's fit is poor when chi2/pixel exceeds this ...
 _POOR_SIGNIFICANCE = 5.0  # ... by this many standard deviations of chi-square
+_MAX_POOR_ROWS = 0.05  # the image rejects the fit when more of the fitted rows fit poorly
 
 # rows.csv flags (sums of): the row was not fitted, or its fit is not to be trusted
 FLAG_NO_EDGE = 1
@@ -100,6 +101,14 @@ class ImageFit:
         rows = self.fitted
         dof = int(self.n_pixels[rows].sum()) - int(rows.sum()) - len(self.shared.names)
         return float(self.chi2[rows].sum()) / max(dof, 1)
+
+    @property
+    def accepted(self) -> bool:
+        """The shared fit converged and at most 5 % of the fitted rows fit poorly. (The shared
+        fit's own quality gate judges the averaged rows, whose noise is far below a row's:
+        its verdict is a note, ``shared.quality``.)"""
+        poor = np.count_nonzero(self.flags & FLAG_POOR_FIT)
+        return bool(self.shared.converged and poor <= _MAX_POOR_ROWS * max(int(self.fitted.sum()), 1))
 
     @property
     def rows_per_s(self) -> float:

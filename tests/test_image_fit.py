@@ -1,0 +1,199 @@
+"""``fwdfit fit-image``: a whole normalised image fitted row by row, and its bad input.
+
+The image is made with the exact Monte Carlo reference (``fwdfit.trace_reference``),
+independent of the model: one trace of the Al block (1000 µm x 2 mm, tilt 0.24°, ICON
+geometry, 2.7 Å line, 8.5 mm) on bins of an eighth of a pixel, from which each row's
+pixels are summed with the stack's centre moved by a whole number of bins (0.3 µm), so
+every row is the exact reference at its own centre: a 20 µm peak-to-peak sinusoid plus a
+parabola across 40 rows of 600 pixels. 1 % Gaussian noise is added (no error image: the
+fit estimates the noise). One row has no sample in it (open beam), one is mostly
+masked, and 30 scattered pixels are NaN.
+
+Runtime on two cores: the trace ~9 s, the fit ~25 s (two compilations, cached for the
+second CLI call). Bad input fails before anything is compiled.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+import fwdfit
+from fwdfit.cli import main
+from helpers import gaussian_line_table, read_table, rms
+
+AL = fwdfit.constants_from_formula("Al", 2.70)
+PIXEL_UM, SUB = 2.4, 8  # detector pixel, reference bins per pixel
+N_ROWS, N_COLS, X0_UM = 40, 600, -720.0
+FINE_START_UM = -760.8  # (X0_UM - FINE_START_UM) / bin is whole
+NOISE = 0.01
+OPEN_ROW, MASKED_ROW = 17, 25
+
+SCENE = """
+[sample]
+depth_mm = 2.0
+tilt_deg = 0.15
+centre_um = 0.0
+
+[[sample.layers]]
+name = "Al"
+thickness_um = 1100.0
+material = "Al"
+density_g_cm3 = 2.70
+
+[instrument]
+aperture = "circular"
+aperture_mm = 40.0
+aperture_distance_m = 5.5
+pixel_um = 2.4
+
+[spectra.l27]
+wavelength_A = 2.7
+fwhm_rel = 0.15
+
+[[profiles]]
+name = "radiograph"
+distance_mm = 8.5
+spectrum = "l27"
+{data}
+
+[fit]
+vary = ["sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um",
+        "layers.Al.sld_e6_per_A2", "layers.Al.mu_per_m"]
+"""
+
+
+def _scene(folder: Path, data: str = 'image = "T.tif"\nx0_um = -720.0') -> Path:
+    path = folder / "scene.toml"
+    path.write_text(SCENE.format(data=data))
+    return path
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """Rows of the exact reference (T, T_att (N_ROWS, N_COLS)) at centres (N_ROWS,) µm."""
+    lam, weight = gaussian_line_table(2.7, 0.15)
+    bin_um = PIXEL_UM / SUB
+    n_fine = SUB * 634
+    reference = fwdfit.trace_reference(
+        [fwdfit.ReferenceLayer(1000.0, AL.sld_e6_per_A2, AL.mu_per_m, AL.mu_per_m_per_A)],
+        depth_mm=2.0, tilt_deg=0.24, centre_um=0.0, aperture="circular", aperture_mm=40.0,
+        aperture_distance_m=5.5, distance_mm=8.5, spectrum_lambda_A=lam, spectrum_weight=weight,
+        pixel_edges_um=FINE_START_UM + bin_um * np.arange(n_fine + 1), n_rays=8_000_000, seed=3)
+    rows = np.arange(N_ROWS)
+    wanted = 3.0 + 10.0 * np.sin(2 * np.pi * rows / N_ROWS) + 8.0 * (rows / N_ROWS - 0.5) ** 2
+    shift_bins = np.round(wanted / bin_um).astype(int)
+    centres = shift_bins * bin_um
+    # pixel c of a row spans x0 + c p .. + p; in the traced frame (centre 0) that is shifted by -centre
+    first = int(round((X0_UM - FINE_START_UM) / bin_um)) - shift_bins  # (rows,)
+    index = first[:, None] + np.arange(N_COLS * SUB)[None, :]
+    T = reference.T[index].reshape(N_ROWS, N_COLS, SUB).mean(axis=2)
+    T_att = reference.T_att[index].reshape(N_ROWS, N_COLS, SUB).mean(axis=2)
+    return centres, T, T_att
+
+
+@pytest.fixture(scope="module")
+def fitted(truth, tmp_path_factory):
+    """``fwdfit fit-image`` on the noisy image: (output folder, exit status)."""
+    centres, T, _ = truth
+    folder = tmp_path_factory.mktemp("image")
+    rng = np.random.default_rng(7)
+    image = T + NOISE * rng.standard_normal(T.shape)
+    image[OPEN_ROW] = 1.0 + NOISE * rng.standard_normal(N_COLS)  # no sample in this row
+    image[MASKED_ROW, : int(0.6 * N_COLS)] = np.nan
+    image[rng.integers(0, N_ROWS, 30), rng.integers(0, N_COLS, 30)] = np.nan
+    tifffile.imwrite(folder / "T.tif", image.astype(np.float32))
+    scene = _scene(folder)
+    status = main(["fit-image", str(scene), "--out", str(folder / "out"), "--quiet"])
+    return folder / "out", status, image
+
+
+def test_fit_image_follows_a_curved_edge(truth, fitted):
+    centres, _, T_att_true = truth
+    out, status, image = fitted
+    assert status == 0
+    rows = read_table(out / "rows.csv")
+    flags = rows["flag"].astype(int)
+    good = flags == 0
+    # the open-beam row has no edge, the masked row is left out; every other row is fitted
+    assert flags[OPEN_ROW] & 1 and flags[MASKED_ROW] & 2
+    assert good.sum() >= N_ROWS - 3
+    miss = np.abs(rows["centre_um"][good] - centres[good])
+    assert np.mean(miss < 1.0) >= 0.95, miss
+    T_att = tifffile.imread(out / "T_att.tif")
+    assert T_att.dtype == np.float32 and T_att.shape == (N_ROWS, N_COLS)
+    assert rms(T_att[good] - T_att_true[good]) < 0.003
+    result = json.loads((out / "result.json").read_text())
+    thickness = result["parameters"]["layers.Al.thickness_um"]["value"]
+    sld = result["parameters"]["layers.Al.sld_e6_per_A2"]["value"]
+    assert abs(thickness - 1000.0) < 2.0
+    assert abs(sld / AL.sld_e6_per_A2 - 1) < 0.05
+    # NaN pixels are masked and counted; they stay NaN in T_corrected
+    n_nan = int(np.isnan(image).sum())
+    assert result["masked_pixels"] == n_nan
+    T_corrected = tifffile.imread(out / "T_corrected.tif")
+    assert np.array_equal(np.isnan(T_corrected), np.isnan(image))
+    # T_corrected = T - (T_model - T_att): refraction removed, attenuation kept
+    assert rms(np.nan_to_num(T_corrected[good] - T_att_true[good])) < 1.5 * NOISE
+    assert (out / "overview.png").stat().st_size > 0
+
+
+def test_fit_image_rows_carry_honest_errors(truth, fitted):
+    """The centres' errors describe their scatter about the truth (pull sd ~ 1)."""
+    centres, _, _ = truth
+    rows = read_table(fitted[0] / "rows.csv")
+    good = rows["flag"] == 0
+    pull = (rows["centre_um"][good] - centres[good]) / rows["centre_err_um"][good]
+    assert 0.6 < np.std(pull) < 1.6, pull
+
+
+def _image_folder(tmp_path: Path, image: np.ndarray, err: np.ndarray | None = None, data=None) -> Path:
+    tifffile.imwrite(tmp_path / "T.tif", image.astype(np.float32))
+    lines = 'image = "T.tif"\nx0_um = -720.0'
+    if err is not None:
+        tifffile.imwrite(tmp_path / "T_err.tif", err.astype(np.float32))
+        lines += '\nimage_err = "T_err.tif"'
+    return _scene(tmp_path, lines if data is None else data)
+
+
+def _run_fails(capsys, scene: Path, out: Path, *words: str) -> None:
+    assert main(["fit-image", str(scene), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("fwdfit: error:"), err
+    for word in words:
+        assert word in err, err
+    assert not out.exists()
+
+
+def test_image_and_error_image_of_different_shapes_are_refused(tmp_path, capsys):
+    scene = _image_folder(tmp_path, np.ones((10, 100)), np.full((10, 99), 0.01))
+    _run_fails(capsys, scene, tmp_path / "out", "image_err", "10 x 99", "10 x 100")
+
+
+def test_image_without_an_edge_is_refused(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    scene = _image_folder(tmp_path, 1.0 + 0.01 * rng.standard_normal((8, 200)))
+    _run_fails(capsys, scene, tmp_path / "out", "no sample edge")
+
+
+@pytest.mark.parametrize("data, words", [
+    ('image = "T.tif"\nfile = "T.csv"', ["image", "file", "not both"]),
+    ('file = "T.csv"\nx0_um = 0.0', ["x0_um"]),
+    ('image = "T.tif"\nimage_error = "T_err.tif"', ["image_error", "unknown key"]),
+    ('image = "missing.tif"', ["missing.tif", "not found"]),
+    ('image = "scene.toml"', ["scene.toml", "TIFF"]),
+])
+def test_bad_image_keys_are_refused(tmp_path, capsys, data, words):
+    (tmp_path / "T.csv").write_text("x_um,T\n0,1\n2.4,1\n")
+    scene = _image_folder(tmp_path, np.ones((4, 50)), data=data)
+    _run_fails(capsys, scene, tmp_path / "out", *words)
+
+
+def test_fit_refuses_an_image_profile(tmp_path, capsys):
+    scene = _image_folder(tmp_path, np.ones((4, 50)))
+    assert main(["fit", str(scene), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    assert "fit-image" in capsys.readouterr().err
