@@ -1,6 +1,6 @@
 """``fwdfit fit-image``: a whole normalised image fitted row by row, and its bad input.
 
-The image is made with the exact Monte Carlo reference (``fwdfit.trace_reference``),
+The image is made with the exact Monte Carlo reference (``fwdfit.trace_reference_rows``),
 independent of the model: one trace of the Al block (1000 µm x 2 mm, tilt 0.24°, ICON
 geometry, 2.7 Å line, 8.5 mm) on bins of an eighth of a pixel, from which each row's
 pixels are summed with the stack's centre moved by a whole number of bins (0.3 µm), so
@@ -29,7 +29,6 @@ from helpers import gaussian_line_table, read_table, rms
 AL = fwdfit.constants_from_formula("Al", 2.70)
 PIXEL_UM, SUB = 2.4, 8  # detector pixel, reference bins per pixel
 N_ROWS, N_COLS, X0_UM = 40, 600, -720.0
-FINE_START_UM = -760.8  # (X0_UM - FINE_START_UM) / bin is whole
 NOISE = 0.01
 OPEN_ROW, MASKED_ROW = 17, 25
 
@@ -73,27 +72,49 @@ def _scene(folder: Path, data: str = 'image = "T.tif"\nx0_um = -720.0') -> Path:
     return path
 
 
+TRACE = dict(depth_mm=2.0, tilt_deg=0.24, aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5,
+             distance_mm=8.5)
+
+
+def _al():
+    return [fwdfit.ReferenceLayer(1000.0, AL.sld_e6_per_A2, AL.mu_per_m, AL.mu_per_m_per_A)]
+
+
 @pytest.fixture(scope="module")
 def truth():
     """Rows of the exact reference (T, T_att (N_ROWS, N_COLS)) at centres (N_ROWS,) µm."""
     lam, weight = gaussian_line_table(2.7, 0.15)
-    bin_um = PIXEL_UM / SUB
-    n_fine = SUB * 634
-    reference = fwdfit.trace_reference(
-        [fwdfit.ReferenceLayer(1000.0, AL.sld_e6_per_A2, AL.mu_per_m, AL.mu_per_m_per_A)],
-        depth_mm=2.0, tilt_deg=0.24, centre_um=0.0, aperture="circular", aperture_mm=40.0,
-        aperture_distance_m=5.5, distance_mm=8.5, spectrum_lambda_A=lam, spectrum_weight=weight,
-        pixel_edges_um=FINE_START_UM + bin_um * np.arange(n_fine + 1), n_rays=8_000_000, seed=3)
     rows = np.arange(N_ROWS)
     wanted = 3.0 + 10.0 * np.sin(2 * np.pi * rows / N_ROWS) + 8.0 * (rows / N_ROWS - 0.5) ** 2
-    shift_bins = np.round(wanted / bin_um).astype(int)
-    centres = shift_bins * bin_um
-    # pixel c of a row spans x0 + c p .. + p; in the traced frame (centre 0) that is shifted by -centre
-    first = int(round((X0_UM - FINE_START_UM) / bin_um)) - shift_bins  # (rows,)
-    index = first[:, None] + np.arange(N_COLS * SUB)[None, :]
-    T = reference.T[index].reshape(N_ROWS, N_COLS, SUB).mean(axis=2)
-    T_att = reference.T_att[index].reshape(N_ROWS, N_COLS, SUB).mean(axis=2)
-    return centres, T, T_att
+    reference = fwdfit.trace_reference_rows(
+        _al(), centres_um=wanted, x0_um=X0_UM, pixel_um=PIXEL_UM, n_pixels=N_COLS, sub=SUB,
+        spectrum_lambda_A=lam, spectrum_weight=weight, n_rays=8_000_000, seed=3, **TRACE)
+    assert np.all(np.abs(reference.centres_um - wanted) <= 0.5 * PIXEL_UM / SUB + 1e-9)
+    return reference.centres_um, reference.T, reference.T_att
+
+
+def test_reference_rows_are_the_reference_at_each_centre():
+    """A row of trace_reference_rows against trace_reference with the stack at that row's centre."""
+    lam, weight = gaussian_line_table(2.7, 0.15)
+    common = dict(spectrum_lambda_A=lam, spectrum_weight=weight, n_rays=1_000_000, **TRACE)
+    rows = fwdfit.trace_reference_rows(_al(), centres_um=np.array([-9.0, 0.0, 14.1]), x0_um=-600.0,
+                                       pixel_um=PIXEL_UM, n_pixels=500, sub=SUB, **common)
+    centre = rows.centres_um[2]
+    direct = fwdfit.trace_reference(_al(), centre_um=centre, pixel_edges_um=-600.0 + PIXEL_UM * np.arange(501),
+                                    seed=11, **common)
+    assert abs(centre - 14.1) <= 0.15
+    assert rms(rows.T_att[2] - direct.T_att) < 2e-4
+    assert rms(rows.T[2] - direct.T) < 3 * rms(np.hypot(rows.T_err[2], direct.T_err))
+    # the stack moves with the centre: the rows' left edges (half-way down) lie as far apart
+    x = -600.0 + PIXEL_UM * (np.arange(500) + 0.5)
+
+    def left_edge(T_att):
+        left = x < 0
+        half = 0.5 * (T_att[left].max() + T_att[left].min())
+        return np.interp(half, T_att[left][::-1], x[left][::-1])
+
+    moved = left_edge(rows.T_att[2]) - left_edge(rows.T_att[0])
+    assert abs(moved - (rows.centres_um[2] - rows.centres_um[0])) < 0.3
 
 
 @pytest.fixture(scope="module")
