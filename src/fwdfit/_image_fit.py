@@ -182,7 +182,8 @@ def edge_centres(scene: Scene, profile: Profile) -> tuple[np.ndarray, np.ndarray
         flags[found & off] = FLAG_NO_EDGE
         centres[found & off] = np.nan
     if not np.isfinite(centres).any():
-        raise FwdfitError(f"{profile.image_file}: no sample edge found in any of its {len(image)} rows")
+        raise FwdfitError(f"{profile.image_file}: no sample edge found in any of its {len(image)} rows "
+                          f"({int(np.count_nonzero(flags == FLAG_MASKED))} of them mostly masked)")
     return centres, flags
 
 
