@@ -23,6 +23,7 @@ import pytest
 import tifffile
 
 import fwdfit
+from fwdfit._least_squares import levenberg_marquardt
 from fwdfit.cli import main
 from helpers import gaussian_line_table, read_table, rms
 
@@ -170,6 +171,23 @@ def test_fit_image_rows_carry_honest_errors(truth, fitted):
     good = rows["flag"] == 0
     pull = (rows["centre_um"][good] - centres[good]) / rows["centre_err_um"][good]
     assert 0.6 < np.std(pull) < 1.6, pull
+
+
+def test_levenberg_marquardt_solves_independent_problems():
+    """Forty exponential decays, each with data of its own (rates 0.5 to 2.5, two nearly
+    equal), solved at once: each reaches its own rate, none is merged into a neighbour or
+    abandoned for a far worse chi-square (its data are not the others')."""
+    t = np.linspace(0.0, 4.0, 50)
+    rates = np.concatenate([np.linspace(0.5, 2.5, 39), [1.0001]])
+    data = 3.0 * np.exp(-rates[:, None] * t) + 0.5 * np.arange(40)[:, None]  # offsets: chi-squares differ
+
+    def residuals(rows, problems):
+        return 3.0 * np.exp(-rows[:, :1] * t) + 0.5 * problems[:, None] - data[problems]
+
+    solution = levenberg_marquardt(residuals, np.full((40, 1), 1.0), np.ones(1), tolerance=1e-8,
+                                   max_steps=100, independent=True)
+    assert solution.converged.all()
+    np.testing.assert_allclose(solution.u[:, 0], rates, rtol=1e-7)
 
 
 def _image_folder(tmp_path: Path, image: np.ndarray, err: np.ndarray | None = None, data=None) -> Path:
