@@ -212,6 +212,8 @@ class Fitter:
             raise FwdfitError(f"n_starts must be >= 1, got {n_starts}")
         self.scene, self.n_starts, self.tolerance, self.max_steps = scene, n_starts, tolerance, max_steps
         self.progress = progress
+        if scene.fit.per_row:
+            raise FwdfitError(f"{scene.path}: fit.per_row: only for fwdfit fit-image (an image profile)")
         self.free = free_parameters(scene, vary, bounds)
         self._data = _data(scene)
         tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)

@@ -45,7 +45,7 @@ _ROUNDS = 2  # shared fit + per-row fit, repeated with the fitted centres
 _CHUNK_ROWS = 64  # rows solved together (one progress line each)
 _ROW_STEPS = 30  # solver steps per row
 _ROW_TOLERANCE = 1e-2  # stop when a step moves the centre by less than this many standard errors
-_TYPICAL_CENTRE_STEPS = 5.0  # largest solver step of a centre, in its typical steps (µm)
+_TYPICAL_STEPS = 5.0  # largest solver step of a per-row value, in its typical steps (1 µm for the centre)
 _POOR_LIMIT = 2.0  # a row's fit is poor when chi2/pixel exceeds this ...
 _POOR_SIGNIFICANCE = 5.0  # ... by this many standard deviations of chi-square
 _MAX_POOR_ROWS = 0.05  # the image rejects the fit when more of the fitted rows fit poorly
@@ -61,15 +61,17 @@ _UNFITTED = FLAG_NO_EDGE | FLAG_MASKED
 @dataclasses.dataclass(frozen=True)
 class ImageFit:
     """The fit of one image (rows, n): shared values from ``shared`` (a FitResult of the
-    averaged profiles), per row (rows,) the centre (NaN: not fitted), its error, chi-square,
-    fitted pixels and flags; images (rows, n) of the data, model, T_att and T_corrected
-    (NaN where masked, and T_att in rows not fitted)."""
+    averaged profiles); per row the values and errors (rows, n_per_row) of the parameters
+    ``per_row`` (the centre first; NaN: not fitted), chi-square, fitted pixels and flags
+    (rows,); images (rows, n) of the data, model, T_att and T_corrected (NaN where masked,
+    and T_att in rows not fitted)."""
 
     name: str
     x_um: np.ndarray
     shared: FitResult
-    centre_um: np.ndarray
-    centre_err_um: np.ndarray
+    per_row: tuple[str, ...]
+    row_values: np.ndarray
+    row_errors: np.ndarray
     edge_centre_um: np.ndarray  # from the edges, the fit's start (NaN: no edge)
     chi2: np.ndarray
     n_pixels: np.ndarray
@@ -88,6 +90,14 @@ class ImageFit:
     rounds: int
 
     @property
+    def centre_um(self) -> np.ndarray:
+        return self.row_values[:, 0]
+
+    @property
+    def centre_err_um(self) -> np.ndarray:
+        return self.row_errors[:, 0]
+
+    @property
     def fitted(self) -> np.ndarray:
         return (self.flags & _UNFITTED) == 0
 
@@ -97,9 +107,9 @@ class ImageFit:
 
     @property
     def chi2_reduced(self) -> float:
-        """Over every fitted row: chi-square per degree of freedom (one centre per row)."""
+        """Over every fitted row: chi-square per degree of freedom."""
         rows = self.fitted
-        dof = int(self.n_pixels[rows].sum()) - int(rows.sum()) - len(self.shared.names)
+        dof = int(self.n_pixels[rows].sum()) - int(rows.sum()) * len(self.per_row) - len(self.shared.names)
         return float(self.chi2[rows].sum()) / max(dof, 1)
 
     @property
@@ -129,14 +139,46 @@ def _image_profile(scene: Scene) -> Profile:
     return images[0]
 
 
-def _shared_vary(scene: Scene) -> tuple[str, ...]:
-    """The scene's [fit] vary with the centre (per row) added; per-profile keys refused."""
-    vary = tuple(scene.fit.vary)
-    profile_keys = [v for v in vary if v.startswith("profiles.")]
-    if profile_keys:
-        raise FwdfitError(f"{scene.path}: fit.vary: {profile_keys[0]!r}: fit-image fits sample and layer "
-                          "parameters (and the centre per row), not profile keys")
-    return vary if CENTRE in vary else vary + (CENTRE,)
+@dataclasses.dataclass(frozen=True)
+class _Names:
+    """The free parameters of the shared fit (of the averaged profiles, ``shared``) and of
+    the per-row fits (``rows``; ``per_row`` among them, the centre first). A profile key
+    named in [fit] per_row is one parameter per averaged profile in the shared fit."""
+
+    shared: tuple[str, ...]
+    rows: tuple[str, ...]
+    per_row: tuple[str, ...]
+    bounds_shared: dict
+    bounds_rows: dict
+
+
+def _names(scene: Scene, profile: Profile) -> _Names:
+    """[fit] vary and per_row split into the shared and the per-row fits' parameters."""
+    vary, per_row = tuple(scene.fit.vary), tuple(scene.fit.per_row)
+
+    def key(name):  # a profile key of the image ("profiles.NAME.norm", "profiles.*.norm"), else None
+        parts = name.split(".")
+        owner = ".".join(parts[1:-1])
+        return parts[-1] if parts[0] == "profiles" and len(parts) >= 3 and owner in ("*", profile.name) else None
+
+    for name in vary:
+        if name.startswith("profiles.") and name not in per_row:
+            raise FwdfitError(f"{scene.path}: fit.vary: {name!r}: fit-image fits profile keys per row "
+                              "only (name it in fit.per_row)")
+    for name in per_row:
+        if name.startswith("profiles.") and key(name) is None:
+            raise FwdfitError(f"{scene.path}: fit.per_row: {name!r} names no key of the image profile "
+                              f"{profile.name!r}")
+    per_row = tuple(dict.fromkeys((CENTRE,) + per_row))
+    every = tuple(dict.fromkeys(vary + per_row))
+    shared = tuple(f"profiles.*.{key(n)}" if key(n) else n for n in every)
+    rows = tuple(f"profiles.{profile.name}.{key(n)}" if key(n) else n for n in every)
+    per_row = tuple(f"profiles.{profile.name}.{key(n)}" if key(n) else n for n in per_row)
+    rename = lambda bounds, form: {(form.format(key(n)) if key(n) else n): b for n, b in bounds.items()}  # noqa: E731
+    names = _Names(shared, rows, per_row, rename(scene.fit.bounds, "profiles.*.{}"),
+                   rename(scene.fit.bounds, f"profiles.{profile.name}.{{}}"))
+    free_parameters(scene, vary=names.rows, bounds=names.bounds_rows)  # every name and bound exists
+    return names
 
 
 def _row_sigma(profile: Profile) -> tuple[np.ndarray, bool]:
@@ -246,41 +288,64 @@ class _Binning:
 
 
 class _RowSolver:
-    """Every row's centre with the shared values fixed: one compiled program for all rows."""
+    """Every row's own parameters with the shared values fixed: one compiled program for all rows."""
 
-    def __init__(self, scene: Scene, profile: Profile, shared: FitResult, fitter: Fitter, vary, accuracy):
+    def __init__(self, scene: Scene, profile: Profile, shared: FitResult, fitter: Fitter, names: _Names,
+                 accuracy):
         row_profile = dataclasses.replace(profile, image=None, image_err=None, T=None, T_err=None)
-        self.scene = dataclasses.replace(shared.scene, profiles=(row_profile,), path=scene.path)
-        self.free = free_parameters(self.scene, vary=vary, bounds=scene.fit.bounds)
+        sample = shared.scene.sample
+        self.scene = dataclasses.replace(scene, sample=sample, profiles=(row_profile,),
+                                         fit=dataclasses.replace(scene.fit, per_row=()))
+        self.free = free_parameters(self.scene, vary=names.rows, bounds=names.bounds_rows)
         tilt = next((p for p in fitter.free if p.name == "sample.tilt_deg"), None)
         self.model = build_model(self.scene, accuracy, free=[p.name for p in self.free],
                                  tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
         self.predict = Predictor(self.model, assembler(self.scene, self.free), len(self.free))
         self.compile_time_s = self.predict.compile_time_s
-        self.centre = [p.name for p in self.free].index(CENTRE)
+        self.names = [p.name for p in self.free]
+        self.own = [self.names.index(n) for n in names.per_row]  # the per-row ones, centre first
 
-    def values(self, shared: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        rows = np.tile(shared, (len(centres), 1))
-        rows[:, self.centre] = centres
+    def base(self, shared: FitResult) -> np.ndarray:
+        """The shared fit's values in this program's order (a per-bin profile key: their mean)."""
+        values = dict(zip(shared.names, shared.values))
+        out = []
+        for name in self.names:
+            if name in values:
+                out.append(values[name])
+            else:
+                field = name.rsplit(".", 1)[1]
+                out.append(np.mean([v for n, v in values.items() if n.startswith("profiles.") and n.endswith(field)]))
+        return np.array(out)
+
+    def values(self, base: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """Model rows (k, n_free): ``base`` with the per-row values ``own`` (k, n_own) set."""
+        rows = np.tile(base, (len(own), 1))
+        rows[:, self.own] = own
         return rows
 
-    def solve(self, shared: np.ndarray, data: np.ndarray, sigma: np.ndarray, starts: np.ndarray):
-        """Centres (k,), their errors (k,), chi-square (k,), steps (k,), converged (k,) of
-        the rows data (k, n) with errors sigma (k, n) (inf: masked), from starts (k,)."""
-        parameter = self.free[self.centre]
+    def solve(self, base: np.ndarray, data: np.ndarray, sigma: np.ndarray, starts: np.ndarray):
+        """Per-row values (k, n_own), their errors (k, n_own), chi-square (k,), steps (k,) and
+        converged (k,) of the rows data (k, n) with errors sigma (k, n) (inf: masked), from
+        starts (k, n_own)."""
+        parameters = [self.free[j] for j in self.own]
         data = np.where(np.isfinite(sigma), data, 0.0)
 
+        def physical(u):
+            return np.stack([p.from_unit(u[:, i]) for i, p in enumerate(parameters)], axis=1)
+
         def residuals(u, problems):
-            T_model, _ = self.predict(self.values(shared, parameter.from_unit(u[:, 0])))
+            T_model, _ = self.predict(self.values(base, physical(u)))
             return (T_model - data[problems]) / sigma[problems]
 
-        u0 = parameter.to_unit(starts)[:, None]
-        solution = levenberg_marquardt(residuals, u0, np.array([_TYPICAL_CENTRE_STEPS]),
-                                       tolerance=_ROW_TOLERANCE, max_steps=_ROW_STEPS, independent=True)
-        centres = parameter.from_unit(solution.u[:, 0])
-        curvature = np.sum(solution.jacobian[:, :, 0] ** 2, axis=1)
-        errors = parameter.value_per_unit(solution.u[:, 0]) / np.sqrt(np.maximum(curvature, 1e-300))
-        return centres, errors, solution.chi2, solution.steps, solution.converged
+        u0 = np.stack([p.to_unit(starts[:, i]) for i, p in enumerate(parameters)], axis=1)
+        typical = np.full(len(parameters), _TYPICAL_STEPS)
+        solution = levenberg_marquardt(residuals, u0, typical, tolerance=_ROW_TOLERANCE, max_steps=_ROW_STEPS,
+                                       independent=True)
+        slope = np.stack([p.value_per_unit(solution.u[:, i]) for i, p in enumerate(parameters)], axis=1)
+        curvature = np.einsum("kNi,kNj->kij", solution.jacobian, solution.jacobian)
+        variance = np.diagonal(np.linalg.pinv(curvature, hermitian=True), axis1=1, axis2=2)
+        errors = slope * np.sqrt(np.clip(variance, 0.0, None))
+        return physical(solution.u), errors, solution.chi2, solution.steps, solution.converged
 
 
 def _progress_line(enabled: bool) -> Callable[[str], None]:
@@ -291,11 +356,12 @@ def _progress_line(enabled: bool) -> Callable[[str], None]:
 
 def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int = _ROUNDS,
               progress: bool = False) -> ImageFit:
-    """Fit the one image profile of a scene: shared [fit] parameters, a centre per row.
+    """Fit the one image profile of a scene: shared [fit] vary parameters, and per row the
+    centre and the [fit] per_row parameters.
 
     accuracy: the model's target RMS error in T. rounds: shared fit + per-row fit, each
-    round starting from the last one's centres. progress: rows done, rate and time left
-    on stderr. Needs float64 (``jax_enable_x64``).
+    round starting from the last one's rows. progress: rows done, rate and time left on
+    stderr. Needs float64 (``jax_enable_x64``).
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
@@ -303,78 +369,77 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
         raise FwdfitError(f"rounds must be >= 1, got {rounds}")
     say = _progress_line(progress)
     profile = _image_profile(scene)
-    vary = _shared_vary(scene)
+    names = _names(scene, profile)
     pixel = scene.instruments[profile.instrument].pixel_um
     sigma, sigma_from_data = _row_sigma(profile)
+    n_pixels = np.isfinite(sigma).sum(axis=1)
     masked = np.isnan(profile.image)
     begin = time.perf_counter()
     edges, flags = edge_centres(scene, profile)
-    n_rows = len(edges)
+    n_rows, n_own = len(edges), len(names.per_row)
     say(f"{profile.name}: {n_rows} rows x {profile.image.shape[1]} pixels, {int(masked.sum())} masked pixels; "
         f"edges found in {int(np.isfinite(edges).sum())} rows")
     binning = _Binning.of(edges, pixel)
-    use = np.isfinite(edges)
-    centres = edges.copy()
-    fitter = rows = None
-    compile_time = 0.0
-    shared = None
+    todo = np.flatnonzero((flags & _UNFITTED) == 0)
+    use, centres = np.isfinite(edges), edges.copy()
+    fitter = rows = shared = None
+    compile_time = row_time = 0.0
     for round_ in range(rounds):
         _, _, profiles = binning.profiles(profile, centres, use, sigma, pixel)
         if fitter is None:
             bin_scene = dataclasses.replace(
                 scene, sample=dataclasses.replace(scene.sample, centre_um=binning.centre_um),
-                profiles=tuple(profiles))
-            fitter = Fitter(bin_scene, vary=vary, accuracy=accuracy)
+                profiles=tuple(profiles), fit=dataclasses.replace(scene.fit, per_row=()))
+            fitter = Fitter(bin_scene, vary=names.shared, bounds=names.bounds_shared, accuracy=accuracy)
             compile_time += fitter.compile_time_s
             shared = fitter()
         else:
-            start = shared.values
-            shared = fitter(T=[p.T for p in profiles], T_err=[p.T_err for p in profiles], start=start)
+            shared = fitter(T=[p.T for p in profiles], T_err=[p.T_err for p in profiles], start=shared.values)
         say(f"round {round_ + 1}: shared fit of {int(use.sum())} rows in {len(profiles)} averaged profiles, "
             f"chi2/dof {shared.chi2_reduced:.4g}")
         if rows is None:
-            rows = _RowSolver(scene, profile, shared, fitter, vary, accuracy)
+            rows = _RowSolver(scene, profile, shared, fitter, names, accuracy)
             compile_time += rows.compile_time_s
-        fitted_centre = shared[CENTRE][0]
-        todo = np.flatnonzero((flags & _UNFITTED) == 0)
-        # each row starts where its edges put it, moved by the edges' common bias (shared fit)
-        starts = (edges if round_ == 0 else centres) + (fitted_centre - binning.centre_um if round_ == 0 else 0.0)
+        base = rows.base(shared)
+        if round_ == 0:  # each row starts where its edges put it, moved by their common bias
+            starts = np.tile(base[rows.own], (n_rows, 1))
+            starts[:, 0] = edges + shared[CENTRE][0] - binning.centre_um
+        else:
+            starts = values
         row_begin = time.perf_counter()
-        out = _solve_rows(rows, shared.values, profile.image, sigma, todo, starts, say, round_ + 1)
+        out = _solve_rows(rows, base, profile.image, sigma, todo, starts, say, round_ + 1)
         row_time = time.perf_counter() - row_begin
-        centres = np.full(n_rows, np.nan)
-        centre_err, chi2, steps, converged = (np.full(n_rows, np.nan), np.full(n_rows, np.nan),
-                                              np.zeros(n_rows, int), np.zeros(n_rows, bool))
-        centres[todo], centre_err[todo], chi2[todo], steps[todo], converged[todo] = out
-        n_pixels = np.isfinite(sigma).sum(axis=1)
+        values, errors = np.full((n_rows, n_own), np.nan), np.full((n_rows, n_own), np.nan)
+        chi2, steps, converged = np.full(n_rows, np.nan), np.zeros(n_rows, int), np.zeros(n_rows, bool)
+        values[todo], errors[todo], chi2[todo], steps[todo], converged[todo] = out
         if sigma_from_data:
-            centre_err *= np.sqrt(chi2 / np.maximum(n_pixels - 1, 1))
+            errors *= np.sqrt(chi2 / np.maximum(n_pixels - n_own, 1))[:, None]
         flags = flags & _UNFITTED
         z = (chi2 - n_pixels) / np.sqrt(2.0 * np.maximum(n_pixels, 1))
         poor = (chi2 / np.maximum(n_pixels, 1) > _POOR_LIMIT) & (z > _POOR_SIGNIFICANCE)
         flags[todo] |= np.where(poor[todo], FLAG_POOR_FIT, 0) | np.where(converged[todo], 0, FLAG_NOT_CONVERGED)
-        use = flags == 0
+        use, centres = flags == 0, values[:, 0]
         if not use.any():
             raise FwdfitError(f"{profile.image_file}: no row is fitted well (every row flagged)")
     T_model, T_att = np.full(profile.image.shape, np.nan), np.full(profile.image.shape, np.nan)
+    T_model[todo], T_att[todo] = rows.predict(rows.values(base, values[todo]))
     fitted = (flags & _UNFITTED) == 0
-    T_model[fitted], T_att[fitted] = rows.predict(rows.values(shared.values, centres[fitted]))
     T_corrected = np.where(fitted[:, None], profile.image - (T_model - T_att), profile.image)
     wall = time.perf_counter() - begin - compile_time
-    result = ImageFit(profile.name, profile.x_um, shared, centres, centre_err, edges, chi2, n_pixels, steps, flags,
-                      profile.image, sigma, T_model, T_att, T_corrected, sigma_from_data, int(masked.sum()),
-                      compile_time, wall, row_time, rounds)
+    result = ImageFit(profile.name, profile.x_um, shared, names.per_row, values, errors, edges, chi2, n_pixels,
+                      steps, flags, profile.image, sigma, T_model, T_att, T_corrected, sigma_from_data,
+                      int(masked.sum()), compile_time, wall, row_time, rounds)
     say(result.summary())
     return result
 
 
-def _solve_rows(rows: _RowSolver, shared, image, sigma, todo, starts, say, round_: int):
+def _solve_rows(rows: _RowSolver, base, image, sigma, todo, starts, say, round_: int):
     """The per-row solver over the rows ``todo`` in chunks, with a progress line per chunk."""
     parts = []
     begin = time.perf_counter()
     for first in range(0, len(todo), _CHUNK_ROWS):
         chunk = todo[first:first + _CHUNK_ROWS]
-        parts.append(rows.solve(shared, image[chunk], sigma[chunk], starts[chunk]))
+        parts.append(rows.solve(base, image[chunk], sigma[chunk], starts[chunk]))
         done = first + len(chunk)
         rate = done / max(time.perf_counter() - begin, 1e-9)
         say(f"round {round_}: rows {done}/{len(todo)}, {rate:.1f} rows/s, "

@@ -33,12 +33,19 @@ def image_result_dict(result: ImageFit) -> dict:
         "masked_pixels": result.n_masked,
         "sigma_from_data": result.sigma_from_data,
         "rounds": result.rounds,
+        "per_row": list(result.per_row),
         "compile_time_s": result.compile_time_s,
         "solve_time_s": result.wall_time_s,
         "wall_time_s": result.compile_time_s + result.wall_time_s,
         "rows_per_s": result.rows_per_s,
     })
     return summary
+
+
+def _column(name: str) -> str:
+    """rows.csv column of a per-row parameter: tilt_deg, norm, Al.thickness_um, ..."""
+    parts = name.split(".")
+    return ".".join(parts[1:]) if parts[0] == "layers" else parts[-1]
 
 
 def plot_overview(path: Path, result: ImageFit) -> None:
@@ -93,14 +100,16 @@ def write_image_fit(result: ImageFit, out_dir: Path) -> None:
     fitted = result.fitted
     if not np.all(np.isfinite(result.T_att[fitted])):
         raise FwdfitError("T_att is NaN or infinite in a fitted row; nothing written (please report this image)")
-    rows = np.arange(len(result.flags))
+    columns = {"row": np.arange(len(result.flags))}
+    for i, name in enumerate(result.per_row):
+        columns[_column(name)] = result.row_values[:, i]
+        columns[_column(name) + "_err"] = result.row_errors[:, i]
+    columns.update({"edge_centre_um": result.edge_centre_um, "chi2": result.chi2, "n_pixels": result.n_pixels,
+                    "chi2_reduced": result.chi2 / np.maximum(result.n_pixels - len(result.per_row), 1),
+                    "steps": result.steps, "flag": result.flags})
     with staged_folder(Path(out_dir)) as staging:
         (staging / "result.json").write_text(summary)
-        write_columns(staging / "rows.csv", {
-            "row": rows, "centre_um": result.centre_um, "centre_err_um": result.centre_err_um,
-            "edge_centre_um": result.edge_centre_um, "chi2": result.chi2, "n_pixels": result.n_pixels,
-            "chi2_reduced": result.chi2 / np.maximum(result.n_pixels - 1, 1), "steps": result.steps,
-            "flag": result.flags}, allow_nan=True)
+        write_columns(staging / "rows.csv", columns, allow_nan=True)
         for name, image in (("T_att", result.T_att), ("T_corrected", result.T_corrected),
                             ("residual", (result.T - result.T_model) / result.sigma)):
             tifffile.imwrite(staging / f"{name}.tif", image.astype(np.float32))

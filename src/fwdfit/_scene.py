@@ -94,6 +94,7 @@ class Profile:
 class FitSpec:
     vary: tuple[str, ...] = ()
     bounds: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    per_row: tuple[str, ...] = ()  # fit-image: parameters fitted per row (besides the centre)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -462,10 +463,13 @@ def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
 
 
 def _fit(path: Path, table: Any) -> FitSpec:
-    reader = _Reader(path, table, "fit", {"vary", "bounds"})
+    reader = _Reader(path, table, "fit", {"vary", "bounds", "per_row"})
     vary = table.get("vary", [])
     if not isinstance(vary, list) or not all(isinstance(v, str) for v in vary):
         reader.fail("fit.vary", "must be a list of parameter names")
+    per_row = table.get("per_row", [])
+    if not isinstance(per_row, list) or not all(isinstance(v, str) for v in per_row):
+        reader.fail("fit.per_row", "must be a list of parameter names")
     bounds_table = table.get("bounds", {})
     if not isinstance(bounds_table, dict):
         reader.fail("fit.bounds", "must be a table of name = [low, high]")
@@ -478,4 +482,4 @@ def _fit(path: Path, table: Any) -> FitSpec:
         if not pair[0] < pair[1]:
             reader.fail(f"fit.bounds.{name}", f"low must be below high, got {pair}")
         bounds[name] = (float(pair[0]), float(pair[1]))
-    return FitSpec(tuple(vary), bounds)
+    return FitSpec(tuple(vary), bounds, tuple(per_row))
