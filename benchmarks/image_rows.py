@@ -21,7 +21,6 @@ Writes ``benchmarks/results/image_rows.json`` (``--quick``: 40 rows, into result
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import tempfile

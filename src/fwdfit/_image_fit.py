@@ -21,7 +21,6 @@ T_corrected = T - (T_model - T_att), as in the profile fit. Units: µm, as the s
 from __future__ import annotations
 
 import dataclasses
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -262,29 +261,29 @@ class _Binning:
         shift = np.clip(shift, -(self.margin), self.margin)
         return shift, np.asarray(self.bins)[b]
 
-    def profiles(self, profile: Profile, centres, use, sigma, pixel_um) -> tuple[list, list, list]:
-        """Averaged data (T, T_err) per bin and the bin profiles (x_um cropped, shift_um set)."""
+    def profiles(self, profile: Profile, centres, use, sigma, pixel_um) -> list[Profile]:
+        """One profile per bin (x_um cropped, shift_um at the bin's offset) holding the
+        error-weighted mean of its rows (``use``), T_err that of the mean."""
         shift, which = self.assign(np.where(use, centres, self.centre_um), pixel_um)
         n = profile.image.shape[1]
         columns = np.arange(self.margin, n - self.margin)
         weight = np.where(np.isfinite(sigma), 1.0 / sigma ** 2, 0.0)
         data = np.where(np.isfinite(profile.image), profile.image, 0.0)
-        T, T_err, profiles = [], [], []
+        profiles = []
         for k in self.bins:
             rows = np.flatnonzero(use & (which == k))
-            taken = columns[None, :] + shift[rows, None]  # (rows_k, n_cropped)
-            w = weight[rows[:, None], taken]
-            total = w.sum(axis=0)
-            mean = np.where(total > 0, (w * data[rows[:, None], taken]).sum(axis=0) / np.where(total > 0, total, 1), np.nan)
-            if not np.isfinite(mean).any():  # an empty bin: its rows all left out this round
-                mean, total = np.ones(len(columns)), np.zeros(len(columns))
-            T.append(_filled(mean))
-            # a pixel no row covers stays in the table (the model needs its grid) with no weight
-            T_err.append(np.where(total > 0, 1.0 / np.sqrt(np.where(total > 0, total, 1)), 1e6))
+            taken = (rows[:, None], columns[None, :] + shift[rows, None])  # (rows_k, n_cropped)
+            total = weight[taken].sum(axis=0)
+            covered = total > 0
+            # a pixel no row covers stays in the table (the model needs its grid) with no weight;
+            # a bin whose rows were all left out this round holds no weight at all
+            mean = np.where(covered, (weight[taken] * data[taken]).sum(axis=0) / np.where(covered, total, 1), np.nan)
+            T = _filled(mean) if covered.any() else np.ones(len(columns))
+            T_err = np.where(covered, 1.0 / np.sqrt(np.where(covered, total, 1)), 1e6)
             profiles.append(dataclasses.replace(
-                profile, name=f"{profile.name}.bin{k}", x_um=profile.x_um[columns], T=T[-1], T_err=T_err[-1],
+                profile, name=f"{profile.name}.bin{k}", x_um=profile.x_um[columns], T=T, T_err=T_err,
                 shift_um=profile.shift_um + self.bin_offset_px(k) * pixel_um, image=None, image_err=None))
-        return T, T_err, profiles
+        return profiles
 
 
 class _RowSolver:
@@ -385,7 +384,7 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     fitter = rows = shared = None
     compile_time = row_time = 0.0
     for round_ in range(rounds):
-        _, _, profiles = binning.profiles(profile, centres, use, sigma, pixel)
+        profiles = binning.profiles(profile, centres, use, sigma, pixel)
         if fitter is None:
             bin_scene = dataclasses.replace(
                 scene, sample=dataclasses.replace(scene.sample, centre_um=binning.centre_um),
@@ -402,10 +401,9 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
             compile_time += rows.compile_time_s
         base = rows.base(shared)
         if round_ == 0:  # each row starts where its edges put it, moved by their common bias
-            starts = np.tile(base[rows.own], (n_rows, 1))
-            starts[:, 0] = edges + shared[CENTRE][0] - binning.centre_um
-        else:
-            starts = values
+            values = np.tile(base[rows.own], (n_rows, 1))
+            values[:, 0] = edges + shared[CENTRE][0] - binning.centre_um
+        starts = values
         row_begin = time.perf_counter()
         out = _solve_rows(rows, base, profile.image, sigma, todo, starts, say, round_ + 1)
         row_time = time.perf_counter() - row_begin

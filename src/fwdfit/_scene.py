@@ -390,8 +390,8 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                 reader.fail(reader.key(key), "only for an image profile (image = ...)")
         if reader.has("image"):
             image_file = path.parent / reader.string("image")
-            image, image_err = read_image(reader, image_file,
-                                          path.parent / reader.string("image_err") if reader.has("image_err") else None)
+            err_file = path.parent / reader.string("image_err") if reader.has("image_err") else None
+            image, image_err = read_image(reader, image_file, err_file)
             x_um = reader.number("x0_um", 0.0) + (np.arange(image.shape[1]) + 0.5) * pixel_um
         elif reader.has("file"):
             file = path.parent / reader.string("file")
