@@ -175,6 +175,28 @@ def test_fit_image_rows_carry_honest_errors(truth, fitted):
     assert 0.6 < np.std(pull) < 1.6, pull
 
 
+def test_edge_centres_find_rows_and_flag_the_rest(tmp_path):
+    """Step rows 1000 µm wide centred at 0.1 r µm: centres from the edges within a pixel;
+    an open-beam row has no edge (flag 1), a mostly masked row is flagged 2, and a row
+    whose edges are 300 µm closer than the others' gets no centre (fitted from its
+    neighbours) and no flag."""
+    from fwdfit._image_fit import FLAG_MASKED, FLAG_NO_EDGE, edge_centres
+
+    x = X0_UM + PIXEL_UM * (np.arange(N_COLS) + 0.5)
+    rng = np.random.default_rng(2)
+    true = 0.1 * np.arange(12)
+    image = np.where(np.abs(x[None, :] - true[:, None]) < 500, 0.95, 1.0) + 0.003 * rng.standard_normal((12, N_COLS))
+    image[3] = 1.0 + 0.003 * rng.standard_normal(N_COLS)
+    image[5, :400] = np.nan
+    image[8] = np.where(np.abs(x - true[8]) < 350, 0.95, 1.0)
+    scene = fwdfit.load_scene(_image_folder(tmp_path, image))
+    centres, flags = edge_centres(scene, scene.profiles[0])
+    assert flags[3] == FLAG_NO_EDGE and flags[5] == FLAG_MASKED and flags[8] == 0
+    assert np.isnan(centres[[3, 5, 8]]).all()
+    good = np.setdiff1d(np.arange(12), [3, 5, 8])
+    assert np.all(flags[good] == 0) and np.all(np.abs(centres[good] - true[good]) < PIXEL_UM)
+
+
 def test_levenberg_marquardt_solves_independent_problems():
     """Forty exponential decays, each with data of its own (rates 0.5 to 2.5, two nearly
     equal), solved at once: each reaches its own rate, none is merged into a neighbour or

@@ -4,14 +4,15 @@ A curved or drifting edge moves the stack's centre from row to row; everything e
 (thicknesses, SLDs, attenuation, tilt) is the sample's and shared. The fit, in rounds:
 
 1. each row's centre from its outer edges (``_starts.outer_edges``); rows without an
-   edge, or mostly masked, are flagged and left out;
+   edge, or mostly masked, are flagged and left out; a row whose edges are implausibly
+   far apart starts from its neighbours' centres instead;
 2. the shared parameters from a joint fit (``Fitter``) of a few averaged profiles: the
    rows, shifted by whole pixels onto a common centre, are averaged in ``_BINS`` bins of
    their sub-pixel offset, each bin a profile whose sample sits at the bin's offset, so
    the average blurs nothing the model does not know of;
-3. each row's centre with the shared values fixed: one compiled program (``Predictor``)
-   for every row, Levenberg-Marquardt over all rows of a chunk at once
-   (``levenberg_marquardt(..., independent=True)``), each row started from its edges;
+3. each row's centre (and the [fit] per_row parameters) with the shared values fixed: one
+   compiled program (``Predictor``) for every row, Levenberg-Marquardt over all rows of a
+   chunk at once (``levenberg_marquardt(..., independent=True)``);
 4. step 2 again with the fitted centres (no recompilation), then step 3 again.
 
 T_att of a row is the model's attenuation-only profile at that row's centre, and
@@ -202,7 +203,10 @@ def _filled(row: np.ndarray) -> np.ndarray:
 
 
 def edge_centres(scene: Scene, profile: Profile) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's centre from its outer edges (rows,) µm, NaN where none, and the flags (rows,)."""
+    """Each row's centre from its outer edges (rows,) µm, and the flags (rows,): NaN where
+    the row has no edge (FLAG_NO_EDGE), is mostly masked (FLAG_MASKED), or its edges are
+    more than 10 % further apart or closer than the median row's (no flag: it is fitted
+    from its neighbours' centres)."""
     image = profile.image
     pixel = scene.instruments[profile.instrument].pixel_um
     blur = _blur_um(scene, profile)
@@ -220,7 +224,6 @@ def edge_centres(scene: Scene, profile: Profile) -> tuple[np.ndarray, np.ndarray
     found = np.isfinite(widths)
     if found.any():
         off = np.abs(widths - np.median(widths[found])) > _WIDTH_TOLERANCE * np.median(widths[found])
-        flags[found & off] = FLAG_NO_EDGE
         centres[found & off] = np.nan
     if not np.isfinite(centres).any():
         raise FwdfitError(f"{profile.image_file}: no sample edge found in any of its {len(image)} rows "
@@ -400,9 +403,10 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
             rows = _RowSolver(scene, profile, shared, fitter, names, accuracy)
             compile_time += rows.compile_time_s
         base = rows.base(shared)
-        if round_ == 0:  # each row starts where its edges put it, moved by their common bias
+        if round_ == 0:  # each row starts where its edges (or its neighbours') put it, moved by their common bias
             values = np.tile(base[rows.own], (n_rows, 1))
-            values[:, 0] = edges + shared[CENTRE][0] - binning.centre_um
+            known = np.flatnonzero(np.isfinite(edges))
+            values[:, 0] = np.interp(np.arange(n_rows), known, edges[known]) + shared[CENTRE][0] - binning.centre_um
         starts = values
         row_begin = time.perf_counter()
         out = _solve_rows(rows, base, profile.image, sigma, todo, starts, say, round_ + 1)
