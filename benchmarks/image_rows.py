@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -117,6 +118,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="40 rows")
     args = parser.parse_args()
     n_rows = 40 if args.quick else args.rows
+    load_before = os.getloadavg()[0]
     begin = time.perf_counter()
     centres, image, T_att_true = radiograph(n_rows)
     trace_s = time.perf_counter() - begin
@@ -147,6 +149,7 @@ def main() -> None:
             "sld_true": AL.sld_e6_per_A2,
             "chi2_reduced": result.chi2_reduced,
         },
+        "load_average_1min": [load_before, os.getloadavg()[0]],  # other jobs slow every figure down
         "machine": machine_record(),
     }
     path = results_dir(args.quick) / "image_rows.json"
