@@ -189,7 +189,7 @@ def _row_sigma(profile: Profile) -> tuple[np.ndarray, bool]:
     noise = [noise_sigma(row[np.isfinite(row)]) for row in profile.image if np.isfinite(row).sum() > 2]
     sigma = float(np.median(noise)) if noise else 0.0
     if not sigma > 0:
-        raise FwdfitError(f"profile {profile.name!r}: no image_err and no noise in the image to estimate it from")
+        raise FwdfitError(f"{profile.image_file}: no image_err and no noise in the image to estimate it from")
     return np.where(masked, np.inf, sigma), True
 
 
@@ -389,6 +389,8 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     for round_ in range(rounds):
         profiles = binning.profiles(profile, centres, use, sigma, pixel)
         if fitter is None:
+            say(f"compiling the model for {len(profiles)} averaged profiles, then for one row "
+                "(seconds each once cached)")
             bin_scene = dataclasses.replace(
                 scene, sample=dataclasses.replace(scene.sample, centre_um=binning.centre_um),
                 profiles=tuple(profiles), fit=dataclasses.replace(scene.fit, per_row=()))
