@@ -175,6 +175,27 @@ def test_fit_image_rows_carry_honest_errors(truth, fitted):
     assert 0.6 < np.std(pull) < 1.6, pull
 
 
+def test_rows_the_model_cannot_fit_are_flagged_and_left_out(truth, tmp_path, capsys):
+    """A feature the model lacks (a 0.08 bump over 40 pixels inside the sample) in every
+    fifth row: those rows are flagged poor (4), more than 5 % of the rows fit poorly, so
+    the exit status is 3 with every result written; the shared fit, without them, still
+    finds the thickness. (Same geometry as the main case: the compiled programs are cached.)"""
+    centres, T, _ = truth
+    image = T + NOISE * np.random.default_rng(8).standard_normal(T.shape)
+    bad = np.arange(0, N_ROWS, 5)
+    image[bad, 280:320] += 0.08
+    scene = _image_folder(tmp_path, image)
+    out = tmp_path / "out"
+    assert main(["fit-image", str(scene), "--out", str(out), "--quiet"]) == 3
+    assert "poor fit" in capsys.readouterr().err
+    rows = read_table(out / "rows.csv")
+    flags = rows["flag"].astype(int)
+    assert np.all(flags[bad] & 4) and np.all(flags[np.setdiff1d(np.arange(N_ROWS), bad)] == 0)
+    result = json.loads((out / "result.json").read_text())
+    assert result["rows"]["flags"]["poor_fit"] == len(bad) and not result["accepted"]
+    assert abs(result["parameters"]["layers.Al.thickness_um"]["value"] - 1000.0) < 2.0
+
+
 def test_edge_centres_find_rows_and_flag_the_rest(tmp_path):
     """Step rows 1000 µm wide centred at 0.1 r µm: centres from the edges within a pixel;
     an open-beam row has no edge (flag 1), a mostly masked row is flagged 2, and a row
