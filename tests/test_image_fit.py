@@ -277,6 +277,11 @@ def test_bad_image_keys_are_refused(tmp_path, capsys, data, words):
     _run_fails(capsys, scene, tmp_path / "out", *words)
 
 
+def test_an_image_of_raw_counts_is_refused(tmp_path, capsys):
+    tifffile.imwrite(tmp_path / "T.tif", np.full((4, 50), 1000, np.uint16))
+    _run_fails(capsys, _scene(tmp_path), tmp_path / "out", "uint16", "float")
+
+
 def test_fit_refuses_an_image_profile(tmp_path, capsys):
     scene = _image_folder(tmp_path, np.ones((4, 50)))
     assert main(["fit", str(scene), "--out", str(tmp_path / "out"), "--quiet"]) == 1

@@ -457,8 +457,9 @@ def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
     data = np.squeeze(data)
     if data.ndim != 2 or min(data.shape) < 1:
         reader.fail(reader.key(key), f"{file}: needs one 2-D image (rows x columns), got shape {data.shape}")
-    if not (np.issubdtype(data.dtype, np.floating) or np.issubdtype(data.dtype, np.integer)):
-        reader.fail(reader.key(key), f"{file}: pixel type {data.dtype} is not a number")
+    if not np.issubdtype(data.dtype, np.floating):
+        reader.fail(reader.key(key), f"{file}: pixel type {data.dtype}: needs a float image "
+                    "(normalised transmission; fwdfit profile normalises raw counts)")
     return data.astype(float)
 
 
