@@ -459,7 +459,7 @@ def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
         reader.fail(reader.key(key), f"{file}: needs one 2-D image (rows x columns), got shape {data.shape}")
     if not np.issubdtype(data.dtype, np.floating):
         reader.fail(reader.key(key), f"{file}: pixel type {data.dtype}: needs a float image "
-                    "(normalised transmission; fwdfit profile normalises raw counts)")
+                    "of normalised transmission, not raw counts")
     return data.astype(float)
 
 
