@@ -27,6 +27,7 @@ BENCHMARKS = {
     "bench_radiograph": "TIFF stacks to profiles: time and peak memory",
     "bench_tof": "time-of-flight FITS and NeXus stacks to per-bin profiles: time and peak memory",
     "tof_scaling": "time-of-flight bins: plan, trace, compile and evaluation time against bin count",
+    "image_rows": "fit-image: rows per second (750-pixel rows) and accuracy on a curved edge",
 }
 
 

@@ -12,6 +12,9 @@ from ._fit import Fitter as Fitter
 from ._fit import fit as fit
 from ._fit_output import scene_toml as scene_toml
 from ._fit_output import write_fit as write_fit
+from ._image_fit import ImageFit as ImageFit
+from ._image_fit import fit_image as fit_image
+from ._image_output import write_image_fit as write_image_fit
 from ._materials import MaterialConstants as MaterialConstants
 from ._materials import constants_from_formula as constants_from_formula
 from ._model import ForwardModel as ForwardModel
@@ -26,6 +29,7 @@ from ._plan import initial_params as initial_params
 from ._radiograph import profile_from_stacks as profile_from_stacks
 from ._reference import ReferenceLayer as ReferenceLayer
 from ._reference import trace_reference as trace_reference
+from ._reference import trace_reference_rows as trace_reference_rows
 from ._scene import FitSpec as FitSpec
 from ._scene import Instrument as Instrument
 from ._scene import Layer as Layer

@@ -113,6 +113,9 @@ class FitResult:
 
 
 def _data(scene: Scene):
+    images = [p.name for p in scene.profiles if p.image is not None]
+    if images:
+        raise FwdfitError(f"{scene.path}: profile {images[0]!r} is an image: fit it with fwdfit fit-image")
     missing = [p.name for p in scene.profiles if p.T is None]
     if missing:
         raise FwdfitError(f"{scene.path}: profile {missing[0]!r} has no measured data (file = ...)")
@@ -210,6 +213,8 @@ class Fitter:
             raise FwdfitError(f"n_starts must be >= 1, got {n_starts}")
         self.scene, self.n_starts, self.tolerance, self.max_steps = scene, n_starts, tolerance, max_steps
         self.progress = progress
+        if scene.fit.per_row:
+            raise FwdfitError(f"{scene.path}: fit.per_row: only for fwdfit fit-image (an image profile)")
         self.free = free_parameters(scene, vary, bounds)
         self._data = _data(scene)
         tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)

@@ -156,6 +156,8 @@ def scene_toml(scene: Scene, relative_to: Path) -> str:
         lines += ["", "[fit]", f"vary = {_toml_value(list(scene.fit.vary))}"]
         for name, (low, high) in scene.fit.bounds.items():
             lines.append(f"bounds.{json.dumps(name)} = [{_toml_value(low)}, {_toml_value(high)}]")
+        if scene.fit.per_row:
+            lines.append(f"per_row = {_toml_value(list(scene.fit.per_row))}")
     if not math.isclose(scene.accuracy, 1e-3):
         lines += ["", "[model]", f"accuracy = {_toml_value(scene.accuracy)}"]
     return "\n".join(lines) + "\n"

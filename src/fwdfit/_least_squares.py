@@ -48,15 +48,16 @@ class Solution:
     steps: np.ndarray
 
 
-def _jacobians(residuals, u, r, scale, difference_step):
-    """Forward-difference Jacobians (K, N, n) of residuals at u (K, n) with values r (K, N)."""
+def _jacobians(residuals, u, r, scale, difference_step, problems):
+    """Forward-difference Jacobians (K, N, n) of residuals at u (K, n) with values r (K, N);
+    problems (K,): the problem of each row."""
     K, n = u.shape
     steps = difference_step * scale  # (K, n)
     moving = np.flatnonzero(np.any(steps != 0, axis=0))  # held coordinates (scale 0) cost nothing
     shifted = u[:, None, :] + np.eye(n)[moving][None] * steps[:, moving, None]  # (K, m, n)
-    rows = residuals(shifted.reshape(K * len(moving), n)).reshape(K, len(moving), -1)
+    rows = residuals(shifted.reshape(K * len(moving), n), np.repeat(problems, len(moving)))
     J = np.zeros((K, r.shape[1], n))
-    J[:, :, moving] = ((rows - r[:, None, :]) / steps[:, moving, None]).transpose(0, 2, 1)
+    J[:, :, moving] = ((rows.reshape(K, len(moving), -1) - r[:, None, :]) / steps[:, moving, None]).transpose(0, 2, 1)
     return np.where(np.isfinite(J), J, 0.0)
 
 
@@ -82,11 +83,15 @@ def _merge(u, chi2, scale, active) -> None:
 
 def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.ndarray,
                         typical: np.ndarray, *, tolerance: float, max_steps: int,
-                        difference_step: float = 1e-3,
+                        difference_step: float = 1e-3, independent: bool = False,
                         progress: Callable[[int, np.ndarray], None] | None = None) -> Solution:
     """Minimise sum(residuals(u)**2) from each row of u0 (K, n).
 
     residuals: rows of u (m, n) -> residual rows (m, N), non-finite where the model fails.
+    independent: the K rows are K different problems (e.g. one per image row, each with
+    data of its own) rather than K starts of one: residuals is then called as
+    residuals(u (m, n), problems (m,)), problems the index of each row's problem, and
+    no problem is merged into or abandoned for another.
     typical: (n,) or (K, n) largest scale of each coordinate (one typical step, in u); 0 holds
     a coordinate where it starts.
     tolerance: a problem stops when its step moves no parameter by more than this many
@@ -95,12 +100,16 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
     """
     u = np.array(u0, dtype=float)
     K, n = u.shape
-    r = residuals(u)
+    if not independent:
+        one_problem = residuals
+        residuals = lambda rows, problems: one_problem(rows)  # noqa: E731
+    r = residuals(u, np.arange(K))
     chi2 = np.where(np.all(np.isfinite(r), axis=1), np.sum(r * r, axis=1), np.inf)
     r = np.where(np.isfinite(r), r, 0.0)
     # One difference Jacobian, in steps of the typical scale, gives the standard errors
     # that set the solver's scale (and serves as its first Jacobian).
-    J = _jacobians(residuals, u, r, np.broadcast_to(np.asarray(typical, float), (K, n)), difference_step)
+    J = _jacobians(residuals, u, r, np.broadcast_to(np.asarray(typical, float), (K, n)), difference_step,
+                   np.arange(K))
     curvature = J.transpose(0, 2, 1) @ J + _TINY_CURVATURE * np.eye(n)
     errors = np.sqrt(np.clip(np.diagonal(np.linalg.pinv(curvature, hermitian=True), axis1=1, axis2=2), 0, None))
     scale = np.minimum(np.where(errors > 0, errors, np.inf), typical)
@@ -121,7 +130,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
         damped = A + damping[idx, None, None] * np.eye(n)
         delta = -np.linalg.solve(damped, g[..., None])[..., 0]  # (k, n) in standard errors
         trial = u[idx] + delta * scale[idx]
-        r_trial = residuals(trial)
+        r_trial = residuals(trial, idx)
         finite = np.all(np.isfinite(r_trial), axis=1)
         chi2_trial = np.where(finite, np.sum(np.where(np.isfinite(r_trial), r_trial, 0.0) ** 2, axis=1), np.inf)
         predicted = -(2 * np.einsum("kn,kn->k", g, delta) + np.einsum("kn,knm,km->k", delta, A, delta))
@@ -148,11 +157,12 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
         growth[rejected] *= 2.0
         converged[idx[small & ~stale]] = True
         active[idx[(small & ~stale) | (damping[idx] > _MAX_DAMPING)]] = False
-        _merge(u, chi2, scale, active)
-        _abandon(chi2, steps, active)
+        if not independent:
+            _merge(u, chi2, scale, active)
+            _abandon(chi2, steps, active)
         refresh = idx[active[idx] & ((age[idx] >= _BROYDEN_STEPS) | (stale & (small | ~accepted)))]
         if len(refresh):
-            J[refresh] = _jacobians(residuals, u[refresh], r[refresh], scale[refresh], difference_step)
+            J[refresh] = _jacobians(residuals, u[refresh], r[refresh], scale[refresh], difference_step, refresh)
             age[refresh] = 0
         if progress is not None:
             progress(step + 1, chi2)

@@ -48,6 +48,7 @@ class ReferenceResult:
     T_att_err: np.ndarray
     n_rays: int
     n_dropped: int
+    centres_um: np.ndarray | None = None  # (rows,) the stack's centre per row (trace_reference_rows)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -277,3 +278,34 @@ def trace_reference(
         err = np.std(sums[:2] / sums[2], axis=1, ddof=1) / np.sqrt(n_batches)
     return ReferenceResult(T=total[0], T_err=err[0], T_att=total[1], T_att_err=err[1],
                            n_rays=int(n_rays), n_dropped=int(n_dropped))
+
+
+def trace_reference_rows(layers: Sequence[ReferenceLayer], *, centres_um: np.ndarray, x0_um: float,
+                         pixel_um: float, n_pixels: int, sub: int = 8, **trace) -> ReferenceResult:
+    """The exact reference for rows of an image whose stack centre moves from row to row.
+
+    One trace on bins of ``pixel_um / sub``; row r's pixels (column c spans x0_um + c * pixel_um
+    to one pixel further) are sums of ``sub`` bins with the stack moved by a whole number of
+    bins, so every row is the reference at its own centre, ``centres_um`` (rows,) rounded to
+    a bin. trace: the other arguments of ``trace_reference`` (not centre_um, pixel_edges_um).
+
+    Returns a ReferenceResult with (rows, n_pixels) arrays T, T_err, T_att, T_att_err (errors
+    of the pixel means; every row shares the one trace's Monte Carlo noise) and the centres
+    used in ``centres_um`` (rows,).
+    """
+    bin_um = pixel_um / sub
+    shifts = np.round(np.asarray(centres_um, float) / bin_um).astype(int)  # (rows,)
+    start_um = x0_um - bin_um * shifts.max()
+    n_bins = sub * n_pixels + int(shifts.max() - shifts.min())
+    fine = trace_reference(layers, centre_um=0.0, pixel_edges_um=start_um + bin_um * np.arange(n_bins + 1),
+                           **trace)
+    # row r's pixel c starts at x0 + c p - centre_r in the traced frame (centre 0)
+    index = (shifts.max() - shifts)[:, None] + np.arange(sub * n_pixels)[None, :]
+
+    def rows(values, error=False):
+        parts = values[index].reshape(len(shifts), n_pixels, sub)
+        return np.sqrt(np.sum(parts ** 2, axis=2)) / sub if error else parts.mean(axis=2)
+
+    return ReferenceResult(T=rows(fine.T), T_err=rows(fine.T_err, True), T_att=rows(fine.T_att),
+                           T_att_err=rows(fine.T_att_err, True), n_rays=fine.n_rays, n_dropped=fine.n_dropped,
+                           centres_um=shifts * bin_um)

@@ -73,7 +73,9 @@ class Profile:
     """One measured or simulated profile: pixel centres ``x_um`` (n,), data if measured.
 
     Nuisances: the prediction is ``norm * T + background`` with the sample shifted
-    sideways by ``shift_um``; ``file`` is the measured table's path, if any.
+    sideways by ``shift_um``; ``file`` is the measured table's path, if any. An image
+    profile (``image = "T.tif"``, for ``fwdfit fit-image``) holds rows of such profiles
+    in ``image`` instead of ``T``, on the pixels ``x_um`` of its columns.
     """
 
     name: str
@@ -87,12 +89,16 @@ class Profile:
     norm: float = 1.0
     background: float = 0.0
     file: Path | None = None
+    image: np.ndarray | None = None  # (rows, n) normalised transmission, NaN = masked
+    image_err: np.ndarray | None = None  # (rows, n) its 1-sigma errors, if given
+    image_file: Path | None = None
 
 
 @dataclasses.dataclass(frozen=True)
 class FitSpec:
     vary: tuple[str, ...] = ()
     bounds: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    per_row: tuple[str, ...] = ()  # fit-image: parameters fitted per row (besides the centre)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +118,7 @@ _LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
 _PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um",
-                 "shift_um", "norm", "background"}
+                 "shift_um", "norm", "background", "image", "image_err", "x0_um"}
 _BAND_KEYS = ("lambda_min_A", "lambda_max_A")
 _TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
 
@@ -392,8 +398,20 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         if instrument not in instruments:
             reader.fail(reader.key("instrument"), f"no instrument named {instrument!r}")
         pixel_um = instruments[instrument].pixel_um
-        T = T_err = file = None
-        if reader.has("file"):
+        T = T_err = file = image = image_err = image_file = None
+        for key, needs in (("image", "file"), ("image", "x_min_um"), ("image", "x_max_um"),
+                           ("image_err", "file"), ("x0_um", "file")):
+            if reader.has(key) and reader.has(needs):
+                reader.fail(reader.key(key), f"a profile takes either {key} or {needs}, not both")
+        for key in ("image_err", "x0_um"):
+            if reader.has(key) and not reader.has("image"):
+                reader.fail(reader.key(key), "only for an image profile (image = ...)")
+        if reader.has("image"):
+            image_file = path.parent / reader.string("image")
+            err_file = path.parent / reader.string("image_err") if reader.has("image_err") else None
+            image, image_err = read_image(reader, image_file, err_file)
+            x_um = reader.number("x0_um", 0.0) + (np.arange(image.shape[1]) + 0.5) * pixel_um
+        elif reader.has("file"):
             file = path.parent / reader.string("file")
             columns = read_columns(file, ["x_um", "T"], ["T_err"])
             x_um, T, T_err = columns["x_um"], columns["T"], columns.get("T_err")
@@ -417,15 +435,60 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         profiles.append(Profile(
             name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
             shift_um=reader.number("shift_um", 0.0), norm=reader.number("norm", 1.0, positive=True),
-            background=reader.number("background", 0.0), file=file))
+            background=reader.number("background", 0.0), file=file, image=image, image_err=image_err,
+            image_file=image_file))
     return tuple(profiles)
 
 
+def read_image(reader: _Reader, image_file: Path, err_file: Path | None):
+    """An image profile's normalised transmission (rows, n) and its errors (or None), float64.
+
+    Non-finite pixels (in either) are masked: NaN in the image. Errors must be > 0 where
+    finite and have the image's shape.
+    """
+    image = _read_tiff_2d(reader, "image", image_file)
+    image_err = None if err_file is None else _read_tiff_2d(reader, "image_err", err_file)
+    if image.shape[1] > MAX_PIXELS:
+        reader.fail(reader.key("image"), f"{image.shape[1]} columns, more than {MAX_PIXELS} ({SEE})")
+    if image.shape[1] < 16:
+        reader.fail(reader.key("image"), f"{image.shape[1]} columns: a row needs at least 16 pixels")
+    if image_err is not None:
+        if image_err.shape != image.shape:
+            reader.fail(reader.key("image_err"), f"{err_file.name} is {image_err.shape[0]} x "
+                        f"{image_err.shape[1]} pixels, the image {image.shape[0]} x {image.shape[1]}")
+        if np.any(image_err[np.isfinite(image_err)] <= 0):
+            reader.fail(reader.key("image_err"), "errors must be > 0 where given")
+        image = np.where(np.isfinite(image_err), image, np.nan)
+    return np.where(np.isfinite(image), image, np.nan), image_err
+
+
+def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
+    import tifffile
+
+    try:
+        data = tifffile.imread(file)
+    except FileNotFoundError:
+        reader.fail(reader.key(key), f"{file}: file not found")
+    except Exception as error:  # tifffile raises many types for a damaged or foreign file
+        message = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        reader.fail(reader.key(key), f"{file}: not a readable TIFF image ({message})")
+    data = np.squeeze(data)
+    if data.ndim != 2 or min(data.shape) < 1:
+        reader.fail(reader.key(key), f"{file}: needs one 2-D image (rows x columns), got shape {data.shape}")
+    if not np.issubdtype(data.dtype, np.floating):
+        reader.fail(reader.key(key), f"{file}: pixel type {data.dtype}: needs a float image "
+                    "of normalised transmission, not raw counts")
+    return data.astype(float)
+
+
 def _fit(path: Path, table: Any) -> FitSpec:
-    reader = _Reader(path, table, "fit", {"vary", "bounds"})
+    reader = _Reader(path, table, "fit", {"vary", "bounds", "per_row"})
     vary = table.get("vary", [])
     if not isinstance(vary, list) or not all(isinstance(v, str) for v in vary):
         reader.fail("fit.vary", "must be a list of parameter names")
+    per_row = table.get("per_row", [])
+    if not isinstance(per_row, list) or not all(isinstance(v, str) for v in per_row):
+        reader.fail("fit.per_row", "must be a list of parameter names")
     bounds_table = table.get("bounds", {})
     if not isinstance(bounds_table, dict):
         reader.fail("fit.bounds", "must be a table of name = [low, high]")
@@ -438,4 +501,4 @@ def _fit(path: Path, table: Any) -> FitSpec:
         if not pair[0] < pair[1]:
             reader.fail(f"fit.bounds.{name}", f"low must be below high, got {pair}")
         bounds[name] = (float(pair[0]), float(pair[1]))
-    return FitSpec(tuple(vary), bounds)
+    return FitSpec(tuple(vary), bounds, tuple(per_row))

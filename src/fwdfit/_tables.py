@@ -62,10 +62,14 @@ def check_finite(columns: Mapping[str, np.ndarray], where: str) -> None:
                               "points; nothing written (please report this scene)")
 
 
-def write_columns(path: Path, columns: Mapping[str, np.ndarray]) -> None:
-    """Write equal-length finite columns as a CSV with a header row (temp file, then rename)."""
+def write_columns(path: Path, columns: Mapping[str, np.ndarray], allow_nan: bool = False) -> None:
+    """Write equal-length finite columns as a CSV with a header row (temp file, then rename).
+
+    allow_nan: NaN stands for "no value" (e.g. a row that was not fitted) and is written as nan.
+    """
     path = Path(path)
-    check_finite(columns, str(path.name))
+    if not allow_nan:
+        check_finite(columns, str(path.name))
     names = list(columns)
     data = np.column_stack([np.asarray(columns[n], dtype=float) for n in names])
     with temporary_path(path) as temp:

@@ -130,6 +130,43 @@ def _run_fit(args) -> int:
     return 0
 
 
+def _run_fit_image(args) -> int:
+    from ._cache import enable_compilation_cache
+    from ._image_fit import FLAG_POOR_FIT, fit_image
+    from ._image_output import write_image_fit
+    from ._scene import load_scene
+
+    check_paths([args.scene], out_dir=args.out)
+    _enable_float64()
+    scene = load_scene(args.scene)
+    if not args.no_cache:
+        enable_compilation_cache()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the notes are printed with the table below
+        result = fit_image(scene, accuracy=args.accuracy, progress=not args.quiet)
+    write_image_fit(result, Path(args.out))
+    shared = result.shared
+    print(shared.table())
+    print(f"{result.summary()}; compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s; "
+          f"wrote {args.out}")
+    for note in shared.warnings:
+        print(f"warning: shared fit of the averaged rows: {note}", file=sys.stderr)
+    if result.n_masked:
+        print(f"warning: {result.n_masked} masked (non-finite) pixels left out of the fit", file=sys.stderr)
+    flagged = int((result.flags != 0).sum())
+    if flagged:
+        print(f"warning: {flagged} of {len(result.flags)} rows flagged (see the flag column of rows.csv)",
+              file=sys.stderr)
+    if not shared.converged:
+        return EXIT_NOT_CONVERGED
+    if not result.accepted:
+        poor = int((result.flags & FLAG_POOR_FIT != 0).sum())
+        print(f"fwdfit: poor fit: {poor} of {int(result.fitted.sum())} fitted rows fit poorly "
+              "(flag 4 in rows.csv)", file=sys.stderr)
+        return EXIT_REJECTED
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -174,6 +211,20 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--no-cache", action="store_true",
                      help="compile without the persistent compilation cache")
     fit.set_defaults(handler=_run_fit)
+    image = commands.add_parser(
+        "fit-image", help="fit a whole normalised image row by row (shared material, a centre per row)",
+        description="The scene's one profile names image = T.tif. Writes T_att.tif, T_corrected.tif, "
+                    "residual.tif, rows.csv, result.json and overview.png. Exit status as fwdfit fit "
+                    "(2: the shared fit did not converge; 3: more than 5 %% of the fitted rows fit poorly); "
+                    "flagged rows are named in rows.csv.")
+    image.add_argument("scene", help="scene file (TOML) whose one profile is an image, with a [fit] table")
+    image.add_argument("--out", required=True, help="output folder")
+    image.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
+                       help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
+    image.add_argument("--quiet", action="store_true", help="no progress output")
+    image.add_argument("--no-cache", action="store_true",
+                       help="compile without the persistent compilation cache")
+    image.set_defaults(handler=_run_fit_image)
     add_profile_parser(commands)
     return parser
 
