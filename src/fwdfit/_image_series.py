@@ -70,13 +70,17 @@ def check_images(images: Sequence[Path], shape: tuple[int, int]) -> None:
                 series = tiff.series[0]
                 found, dtype = tuple(d for d in series.shape if d != 1), np.dtype(series.dtype)
         except Exception as error:  # tifffile raises many types for a damaged or foreign file
-            message = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            raise FwdfitError(f"{image}: not a readable TIFF image ({message})") from None
+            raise FwdfitError(f"{image}: not a readable TIFF image ({_first_line(error)})") from None
         if found != tuple(shape):
             raise FwdfitError(f"{image}: {' x '.join(map(str, found)) or 'no'} pixels, the template image "
                               f"{shape[0]} x {shape[1]}: every image must have the template's rows and columns")
         if not np.issubdtype(dtype, np.floating):
             raise FwdfitError(f"{image}: pixel type {dtype}: needs a float image of normalised transmission")
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
 
 
 def is_complete(folder: Path) -> bool:
@@ -116,8 +120,7 @@ def fit_one(scene_path: str, image: str, folder: str, accuracy: float | None, ca
             warnings.simplefilter("ignore")  # the fit's notes are in result.json
             write_image_fit(fit_image(scene, accuracy=accuracy), Path(folder))
     except Exception as error:  # one image's failure must not stop the series: it is reported
-        message = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        return {"image": Path(image).name, "status": STATUS_FAILED, "resumed": 0, "message": message}
+        return {"image": Path(image).name, "status": STATUS_FAILED, "resumed": 0, "message": _first_line(error)}
     return summary_line(Path(image), Path(folder), resumed=False)
 
 
@@ -183,7 +186,12 @@ def _run_dask(tasks: list[tuple], scheduler: str | None, workers: int) -> Iterat
     try:
         futures = {client.submit(fit_one, *task, pure=False): i for i, task in enumerate(tasks)}
         for future in as_completed(futures):
-            yield futures[future], future.result()
+            try:
+                line = future.result()
+            except Exception as error:  # the worker died (KilledWorker, ...): fit_one itself reports errors
+                line = {"image": Path(tasks[futures[future]][1]).name, "status": STATUS_FAILED, "resumed": 0,
+                        "message": f"{type(error).__name__}: {_first_line(error)}"}
+            yield futures[future], line
     finally:
         client.close()
         if cluster is not None:
@@ -200,7 +208,7 @@ def fit_series(scene_path: str | Path, images: Sequence[Path], out_dir: str | Pa
     say = say or (lambda text: None)
     out_dir = Path(out_dir)
     done = [i for i, image in enumerate(images) if is_complete(out_dir / image.stem)]
-    todo = [i for i in range(len(images)) if i not in set(done)]
+    todo = sorted(set(range(len(images))) - set(done))
     lines: list[dict | None] = [None] * len(images)
     for i in done:
         lines[i] = summary_line(images[i], out_dir / images[i].stem, resumed=True)
