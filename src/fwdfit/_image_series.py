@@ -207,11 +207,15 @@ def fit_series(scene_path: str | Path, images: Sequence[Path], out_dir: str | Pa
     Returns the summary lines (in the images' order). say: progress lines (stderr)."""
     say = say or (lambda text: None)
     out_dir = Path(out_dir)
-    done = [i for i, image in enumerate(images) if is_complete(out_dir / image.stem)]
-    todo = sorted(set(range(len(images))) - set(done))
     lines: list[dict | None] = [None] * len(images)
-    for i in done:
-        lines[i] = summary_line(images[i], out_dir / images[i].stem, resumed=True)
+    for i, image in enumerate(images):
+        if is_complete(out_dir / image.stem):
+            try:
+                lines[i] = summary_line(image, out_dir / image.stem, resumed=True)
+            except (OSError, ValueError, KeyError, TypeError):  # a damaged result.json: fitted again
+                pass
+    done = [i for i, line in enumerate(lines) if line is not None]
+    todo = [i for i, line in enumerate(lines) if line is None]
     say(f"{len(images)} images: {len(done)} done before (skipped), {len(todo)} to fit"
         + ("" if not todo else " serially" if workers == 1 and scheduler is None
            else f" on {scheduler}" if scheduler else f" on {workers} local Dask workers"))
