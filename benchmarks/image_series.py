@@ -3,7 +3,7 @@ LocalCluster of two worker processes, and whether both give the same numbers.
 
 The series is the exact Monte Carlo reference (``fwdfit.trace_reference_rows``), not the
 model: a 400 µm Al block (2 mm deep, tilt 0.24°) at ICON (circular 40 mm at 5.5 m, 2.7 Å
-line, 8.5 mm), images of ``--rows`` rows x 300 pixels of 2.4 µm, image i shifted by 4 i µm
+line, 8.5 mm), images of ``--rows`` rows x 300 pixels of 2.4 µm, image i shifted by 4.8 (i mod 8) µm
 and its rows by a 3 µm sinusoid, 0.3 % Gaussian noise. The compiled programs are made
 once beforehand (a throwaway fit into the persistent cache), so both runs measure fitting
 and loading the programs, as a user's second run does; the Dask figure includes starting
@@ -44,7 +44,7 @@ AL = fwdfit.constants_from_formula("Al", 2.70)
 def make_series(folder: Path, n_images: int, n_rows: int) -> list[Path]:
     lam, weight = gaussian_line_table(2.7, 0.15)
     rows = np.arange(n_rows)
-    wanted = (SHIFT_UM * np.arange(n_images)[:, None] + 3.0 * np.sin(2 * np.pi * rows / n_rows)[None]).ravel()
+    wanted = (SHIFT_UM * (np.arange(n_images) % 8)[:, None] + 3.0 * np.sin(2 * np.pi * rows / n_rows)[None]).ravel()
     reference = fwdfit.trace_reference_rows(
         [fwdfit.ReferenceLayer(400.0, AL.sld_e6_per_A2, AL.mu_per_m, AL.mu_per_m_per_A)],
         centres_um=wanted, x0_um=X0_UM, pixel_um=PIXEL_UM, n_pixels=N_COLS, sub=8, spectrum_lambda_A=lam,
