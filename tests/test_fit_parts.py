@@ -15,6 +15,7 @@ import pytest
 import fwdfit
 from fwdfit._cache import cache_dir
 from fwdfit._least_squares import levenberg_marquardt
+from fwdfit._predict import _COMPILED
 from fwdfit._quality import assess, runs_z
 from fwdfit._starts import _attenuation, outer_edges, segment
 
@@ -242,12 +243,18 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
     before = jax.config.jax_compilation_cache_dir
     try:
         fwdfit.enable_compilation_cache(tmp_path / "cache")
+        _COMPILED.clear()  # this process's compiled programs: the second Fitter must load the stored one
         first = fwdfit.Fitter(path)
         stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.jaxexport"))
         assert len(stored) == 1
+        _COMPILED.clear()
         second = fwdfit.Fitter(path)
         values = np.array([[990.0], [1010.0]])
         np.testing.assert_array_equal(first.predict(values)[0], second.predict(values)[0])
         assert second.compile_time_s < first.compile_time_s
+        # a third Fitter of the geometry in this process (a Dask worker's next image) reuses the program
+        third = fwdfit.Fitter(path)
+        assert third.predict._compiled is second.predict._compiled
+        np.testing.assert_array_equal(third.predict(values)[0], first.predict(values)[0])
     finally:
         jax.config.update("jax_compilation_cache_dir", before)

@@ -7,7 +7,9 @@ outside it. Compile time is what a user waits for on every new geometry, so the
 program holds one copy of the model and nothing else. Between runs, JAX's persistent
 cache (``_cache``) keeps the compiled program, and the program itself is kept as a
 serialized ``jax.export`` module keyed by the static plan, so that a second run of a
-geometry neither traces nor compiles the model. On a CPU the program takes one
+geometry neither traces nor compiles the model. Within one process (a Dask worker
+fitting image after image, say) the compiled program itself is kept too (``_COMPILED``),
+so a geometry compiles once per process. On a CPU the program takes one
 parameter vector per call (a batch gains no parallelism there); on an accelerator it
 takes ``rows_per_call`` vectors at once (vmap).
 """
@@ -27,6 +29,9 @@ import numpy as np
 
 from ._model import ForwardModel
 from ._parameters import Assembler
+
+_COMPILED: dict[str, object] = {}  # this process's compiled programs by program key (oldest dropped first)
+_MAX_COMPILED = 16
 
 
 def _predict_rows(model: ForwardModel, assemble: Assembler, values):
@@ -63,8 +68,14 @@ class Predictor:
             return _predict_rows(model, assemble, values)
 
         example = jnp.zeros((rows_per_call, n_free))
-        program = _exported(run, self._leaves, example, f"{treedef}|{rows_per_call}|{n_free}")
-        self._compiled = jax.jit(program).lower(self._leaves, example).compile()
+        key = _program_key(self._leaves, example, f"{treedef}|{rows_per_call}|{n_free}")
+        self._compiled = _COMPILED.get(key)
+        if self._compiled is None:
+            program = _exported(run, self._leaves, example, key)
+            self._compiled = jax.jit(program).lower(self._leaves, example).compile()
+            if len(_COMPILED) >= _MAX_COMPILED:
+                del _COMPILED[next(iter(_COMPILED))]
+            _COMPILED[key] = self._compiled
         self.compile_time_s = time.perf_counter() - start
         self.n_evaluations = 0
 
@@ -81,20 +92,24 @@ class Predictor:
         return T, T_att
 
 
-def _exported(run, leaves, example, plan: str):
-    """``run`` as a callable for jit: a stored ``jax.export`` module of it when the
-    persistent cache is on (made and stored on the first run), else ``run`` itself.
+def _program_key(leaves, example, plan: str) -> str:
+    """The program's key: plan (text that, with the argument shapes and the versions,
+    identifies the program), the shapes and dtypes, the versions and the backend."""
+    from . import __version__
 
-    plan: text that, with the argument shapes and the versions, identifies the program.
+    shapes = ";".join(f"{x.shape}{x.dtype}" for x in [*leaves, example])
+    return hashlib.sha256("|".join([__version__, jax.__version__, jax.default_backend(), plan, shapes])
+                          .encode()).hexdigest()[:32]
+
+
+def _exported(run, leaves, example, key: str):
+    """``run`` as a callable for jit: a stored ``jax.export`` module of it (``key``, from
+    ``_program_key``) when the persistent cache is on (made and stored on the first run),
+    else ``run`` itself.
     """
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
         return run
-    from . import __version__
-
-    shapes = ";".join(f"{x.shape}{x.dtype}" for x in [*leaves, example])
-    key = hashlib.sha256("|".join([__version__, jax.__version__, jax.default_backend(), plan, shapes])
-                         .encode()).hexdigest()[:32]
     path = Path(folder) / "fwdfit-programs" / f"{key}.jaxexport"
     try:
         return jax.export.deserialize(bytearray(path.read_bytes())).call

@@ -462,6 +462,23 @@ def read_image(reader: _Reader, image_file: Path, err_file: Path | None):
     return np.where(np.isfinite(image), image, np.nan), image_err
 
 
+def with_image(scene: Scene, image_file: str | Path) -> Scene:
+    """The scene with its one image profile's image read from ``image_file`` (checked as
+    ``image = ...`` is), for a series of images fitted with one scene as template. The new
+    image must have the template's rows and columns; the template's ``image_err`` (its
+    own image's errors) is dropped, so each image's noise is estimated from the image.
+    """
+    index = next(i for i, p in enumerate(scene.profiles) if p.image is not None)
+    profile = scene.profiles[index]
+    image, _ = read_image(_Reader(scene.path, {}, f"profiles[{index}]", set()), Path(image_file), None)
+    if image.shape != profile.image.shape:
+        raise FwdfitError(f"{image_file}: {image.shape[0]} x {image.shape[1]} pixels, the template image "
+                          f"{profile.image_file.name} {profile.image.shape[0]} x {profile.image.shape[1]}")
+    replaced = dataclasses.replace(profile, image=image, image_err=None, image_file=Path(image_file))
+    profiles = scene.profiles[:index] + (replaced,) + scene.profiles[index + 1:]
+    return dataclasses.replace(scene, profiles=profiles)
+
+
 def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
     import tifffile
 

@@ -8,6 +8,7 @@ and exits 130, also writing nothing. Outputs and inputs are checked before any w
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -167,6 +168,37 @@ def _run_fit_image(args) -> int:
     return 0
 
 
+def _run_fit_images(args) -> int:
+    from ._image_fit import _image_profile, _names, _progress_line
+    from ._image_series import STATUS_OK, check_images, find_images, fit_series
+    from ._scene import load_scene
+
+    check_paths([args.scene], out_dir=args.out)
+    if args.workers is not None and args.scheduler is not None:
+        raise FwdfitError("--workers is for a local cluster; with --scheduler the cluster's workers fit")
+    workers = args.workers if args.workers is not None else (1 if args.scheduler else os.cpu_count() or 1)
+    if workers < 1:
+        raise FwdfitError(f"--workers must be >= 1, got {workers}")
+    scene = load_scene(args.scene)
+    profile = _image_profile(scene)
+    _names(scene, profile)  # [fit] fits an image: refused here, not once per image
+    images = find_images(args.images)
+    check_images(images, profile.image.shape)
+    say = _progress_line(not args.quiet)
+    if profile.image_err is not None:
+        say("note: image_err of the template is not used; each image's noise is estimated from the image")
+    lines = fit_series(args.scene, images, args.out, scheduler=args.scheduler, workers=workers,
+                       accuracy=args.accuracy, cache=not args.no_cache, say=say)
+    bad = [line for line in lines if line["status"] != STATUS_OK]
+    print(f"{len(lines) - len(bad)} of {len(lines)} images fitted well; wrote {Path(args.out) / 'summary.csv'}")
+    if bad:
+        names = ", ".join(f"{line['image']} ({line['status']})" for line in bad[:5])
+        print(f"fwdfit: {len(bad)} image(s) not fitted well: {names}{', ...' if len(bad) > 5 else ''}",
+              file=sys.stderr)
+        return EXIT_REJECTED
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -225,6 +257,28 @@ def _parser() -> argparse.ArgumentParser:
     image.add_argument("--no-cache", action="store_true",
                        help="compile without the persistent compilation cache")
     image.set_defaults(handler=_run_fit_image)
+    series = commands.add_parser(
+        "fit-images", help="fit many images (a tomography or time series) with one scene as template",
+        description="Each image is fitted as fit-image fits the scene's image and written to DIR/<image "
+                    "name>/; images whose folder is complete are skipped (an interrupted run resumes). "
+                    "DIR/summary.csv has a line per image. Exit status 0: every image fitted well; "
+                    "3: an image's fit failed, did not converge or was rejected; 1: bad input.")
+    series.add_argument("scene", help="scene file (TOML) whose one profile is an image: the template")
+    series.add_argument("images", nargs="+", metavar="IMAGES",
+                        help="TIFF files, folders of them, or globs ('proj_*.tif'), each with the template's "
+                             "rows and columns")
+    series.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    series.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                        help="a Dask scheduler to fit on (tcp://host:8786), else a local cluster")
+    series.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="local Dask worker processes (default: the machine's cores); 1: serially in "
+                             "this process, no Dask needed")
+    series.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
+                        help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
+    series.add_argument("--quiet", action="store_true", help="no progress output")
+    series.add_argument("--no-cache", action="store_true",
+                        help="compile without the persistent compilation cache")
+    series.set_defaults(handler=_run_fit_images)
     add_profile_parser(commands)
     return parser
 
