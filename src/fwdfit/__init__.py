@@ -26,6 +26,8 @@ from ._plan import initial_params as initial_params
 from ._radiograph import profile_from_stacks as profile_from_stacks
 from ._reference import ReferenceLayer as ReferenceLayer
 from ._reference import trace_reference as trace_reference
+from ._sample import Posterior as Posterior
+from ._sample import sample as sample
 from ._scene import FitSpec as FitSpec
 from ._scene import Instrument as Instrument
 from ._scene import Layer as Layer

@@ -103,10 +103,11 @@ class Posterior:
                 "sampling_time_s": self.sampling_time_s, "compile_time_s": self.compile_time_s}
 
 
-def _log_density(fitter: Fitter):
-    """log posterior (up to a constant) of whitened w (n_free,), u = u_fit + L w: JAX, differentiable."""
+def _log_density(fitter: Fitter, data, sigma):
+    """log posterior (up to a constant) of whitened w (n_free,), u = u_fit + L w: JAX, differentiable.
+
+    data, sigma: one array per profile (the measured T and its 1-sigma error)."""
     free = fitter.free
-    data, sigma, _ = fitter._data
     data, sigma = jnp.asarray(np.concatenate(data)), jnp.asarray(np.concatenate(sigma))
 
     def log_density(model, assemble, u_fit, L, w):
@@ -127,10 +128,10 @@ class _HostDensity:
     fewer rows (one chain) is padded.
     """
 
-    def __init__(self, fitter: Fitter, n_chains: int, u_fit: np.ndarray, L: np.ndarray):
+    def __init__(self, fitter: Fitter, data, sigma, n_chains: int, u_fit: np.ndarray, L: np.ndarray):
         dynamic, static = eqx.partition((fitter.model, fitter.assemble), eqx.is_array)
         dynamic = (dynamic, jnp.asarray(u_fit), jnp.asarray(L))
-        log_density = _log_density(fitter)
+        log_density = _log_density(fitter, data, sigma)
 
         def batch(dynamic, w):
             arrays, u_fit, L = dynamic
@@ -183,13 +184,15 @@ def _unit_covariance(fitter: Fitter, result: FitResult) -> tuple[np.ndarray, np.
 
 
 def sample(scene, n_draws: int, *, chains: int = 4, warmup: int | None = None, seed: int = 0,
-           fitter: Fitter | None = None, result: FitResult | None = None, **fit_options) -> Posterior:
+           fitter: Fitter | None = None, result: FitResult | None = None, T=None, T_err=None,
+           **fit_options) -> Posterior:
     """NUTS draws from the posterior of a scene's free parameters (fit first, then sample).
 
     n_draws: draws per chain after warm-up; chains: independent chains, run together;
     warmup: adaptation steps per chain (default max(300, n_draws / 2)). fitter / result:
-    an existing ``Fitter`` of the scene and its ``FitResult`` (default: fit here, with
-    ``fit_options`` as for ``Fitter``, e.g. accuracy). Needs blackjax (``pip install
+    an existing ``Fitter`` of the scene and its ``FitResult`` of these data (default: fit
+    here, with ``fit_options`` as for ``Fitter``, e.g. accuracy). T, T_err: other data
+    than the scene's, as for ``Fitter.__call__``. Needs blackjax (``pip install
     'fwdfit[sample]'``) and float64.
     """
     if int(n_draws) != n_draws or n_draws < 1:
@@ -203,13 +206,14 @@ def sample(scene, n_draws: int, *, chains: int = 4, warmup: int | None = None, s
     from blackjax.adaptation.base import get_filter_adapt_info_fn
 
     fitter = fitter if fitter is not None else Fitter(scene, **fit_options)
-    result = result if result is not None else fitter(seed=seed)
+    result = result if result is not None else fitter(T, T_err, seed=seed)
+    data, sigma, _ = fitter._data if T is None else fitter._new_data(T, T_err)
     u_best, cov_u = _unit_covariance(fitter, result)
     if not np.all(np.isfinite(cov_u)) or np.any(np.linalg.eigvalsh(cov_u) <= 0):
         raise FwdfitError("the fit's covariance is singular: a free parameter is not constrained by the data")
 
     L = np.linalg.cholesky(cov_u)
-    host = _HostDensity(fitter, chains, u_best, L)
+    host = _HostDensity(fitter, data, sigma, chains, u_best, L)
     log_density = _traced_density(host)
     starts = np.random.default_rng(seed).normal(size=(chains, len(u_best)))
     keys = jax.random.split(jax.random.key(seed), 2 * chains)
