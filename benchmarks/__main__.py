@@ -26,6 +26,7 @@ BENCHMARKS = {
     "paganin_comparison": "the Paganin filter against the forward-model fit",
     "bench_radiograph": "TIFF stacks to profiles: time and peak memory",
     "bench_tof": "time-of-flight FITS and NeXus stacks to per-bin profiles: time and peak memory",
+    "sampler": "NUTS posterior sampling: effective samples per second, the oxide's SLD valley",
 }
 
 

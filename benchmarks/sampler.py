@@ -37,7 +37,7 @@ jax.config.update("jax_enable_x64", True)
 
 import fwdfit  # noqa: E402
 
-from benchmarks._results import machine_record, results_dir  # noqa: E402
+from _results import machine_record, results_dir  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 AL_SCENE = ROOT / "examples" / "al_block" / "scene.toml"
