@@ -16,7 +16,7 @@ Cases (each: fit, then ``fwdfit.sample`` from the fit's optimum):
   68 ± 10 %). One ``Fitter``, so the model and gradient compile once.
 
     python benchmarks/sampler.py [al] [oxide] [coverage] [--draws N] [--warmup W]
-        [--chains C] [--accuracy A]
+        [--chains C] [--accuracy A] [--quick]
 
 Writes ``benchmarks/results/sampler.json``; costs on 2 CPU cores are in the file.
 """
@@ -114,10 +114,13 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=300)
     parser.add_argument("--chains", type=int, default=4)
     parser.add_argument("--accuracy", type=float, default=None)
-    parser.add_argument("--quick", action="store_true", help="accepted for python -m benchmarks; no effect")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: the Al example only, 2 chains x 100 draws, accuracy 0.01")
     args = parser.parse_args()
+    if args.quick:
+        args.cases, args.draws, args.warmup, args.chains, args.accuracy = ["al"], 100, 100, 2, 0.01
     fwdfit.enable_compilation_cache()
-    path = results_dir(False) / "sampler.json"
+    path = results_dir(args.quick) / "sampler.json"
     results = json.loads(path.read_text()) if path.exists() else {}
     for case in args.cases:
         print(f"== {case}", flush=True)
