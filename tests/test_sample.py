@@ -137,3 +137,15 @@ def test_sampling_a_scene_without_data_is_one_line_error(scene_path, tmp_path, c
     err = capsys.readouterr().err.strip()
     assert "no measured data" in err and "\n" not in err
     assert not out.exists()
+
+
+def test_one_chain_and_few_draws_write_null_diagnostics(scene_path, tmp_path):
+    """Too few draws for ESS and a single chain for R-hat: null in posterior.json, not NaN."""
+    out = tmp_path / "out"
+    assert main(["fit", str(scene_path), "--out", str(out), "--quiet", "--sample", "3", "--chains", "1",
+                 "--warmup", "10"]) == 0
+    posterior = json.loads((out / "posterior.json").read_text())
+    assert posterior["chains"] == 1 and posterior["draws_per_chain"] == 3
+    for p in posterior["parameters"].values():
+        assert p["ess"] is None and p["rhat"] is None and np.isfinite(p["mean"])
+    assert len((out / "chains.csv").read_text().splitlines()) == 4

@@ -89,8 +89,7 @@ class Posterior:
         parameters = {
             name: {"mean": float(self.mean[j]), "sd": float(self.sd[j]),
                    "quantiles": {f"{q:g}%": float(quantiles[k, j]) for k, q in enumerate(QUANTILES)},
-                   "ess": float(self.ess[j]),
-                   "rhat": float(self.rhat[j]) if np.isfinite(self.rhat[j]) else None,
+                   "ess": _number(self.ess[j]), "rhat": _number(self.rhat[j]),
                    "least_squares": {"value": float(self.fit.values[j]), "error": float(self.fit.errors[j])}}
             for j, name in enumerate(self.names)}
         chains, draws, _ = self.draws.shape
@@ -98,9 +97,14 @@ class Posterior:
                 "correlation": {"names": list(self.names), "matrix": np.round(self.correlation, 6).tolist()},
                 "chains": chains, "draws_per_chain": draws, "warmup_per_chain": self.n_warmup,
                 "divergences": self.divergences, "acceptance_rate": self.acceptance_rate,
-                "ess_per_s": {n: float(e) for n, e in zip(self.names, self.ess_per_s)},
-                "min_ess_per_s": float(np.min(self.ess_per_s)),
+                "ess_per_s": {n: _number(e) for n, e in zip(self.names, self.ess_per_s)},
+                "min_ess_per_s": _number(np.min(self.ess_per_s)),
                 "sampling_time_s": self.sampling_time_s, "compile_time_s": self.compile_time_s}
+
+
+def _number(x) -> float | None:
+    """A float for JSON, None where undefined (diagnostics of too few draws or chains)."""
+    return float(x) if np.isfinite(x) else None
 
 
 def _log_density(fitter: Fitter, data, sigma):
@@ -143,34 +147,33 @@ class _HostDensity:
         self._dynamic, self.rows = dynamic, n_chains
         self._compiled = jax.jit(batch).lower(dynamic, jnp.zeros((n_chains, len(fitter.free)))).compile()
         self.compile_time_s = time.perf_counter() - start
-        self.n_evaluations = 0
 
-    def __call__(self, u):
-        u = np.asarray(u, dtype=float)
-        rows = u.reshape(-1, u.shape[-1])
-        padded = np.concatenate([rows, np.repeat(rows[-1:], self.rows - rows.shape[0], axis=0)])
-        value, grad = self._compiled(self._dynamic, jnp.asarray(padded))
-        self.n_evaluations += rows.shape[0]
+    def __call__(self, w):
+        """Value (...,) and gradient (..., n) at whitened coordinates w (..., n), at most C rows."""
+        w = np.asarray(w, dtype=float)
+        rows = w.reshape(-1, w.shape[-1])
         n = rows.shape[0]
-        return (np.asarray(value)[:n].reshape(u.shape[:-1]), np.asarray(grad)[:n].reshape(u.shape))
+        padded = np.concatenate([rows, np.repeat(rows[-1:], self.rows - n, axis=0)])
+        value, grad = self._compiled(self._dynamic, jnp.asarray(padded))
+        return np.asarray(value)[:n].reshape(w.shape[:-1]), np.asarray(grad)[:n].reshape(w.shape)
 
 
 def _traced_density(host: _HostDensity):
-    """A JAX-differentiable log density (n,) -> () that calls ``host`` for value and gradient."""
+    """A JAX-differentiable log density of w (n,) -> () that calls ``host`` for value and gradient."""
 
-    def both(u):
-        shapes = (jax.ShapeDtypeStruct(u.shape[:-1], u.dtype), jax.ShapeDtypeStruct(u.shape, u.dtype))
-        return jax.pure_callback(host, shapes, u, vmap_method="expand_dims")
+    def both(w):
+        shapes = (jax.ShapeDtypeStruct(w.shape[:-1], w.dtype), jax.ShapeDtypeStruct(w.shape, w.dtype))
+        return jax.pure_callback(host, shapes, w, vmap_method="expand_dims")
 
     @jax.custom_jvp
-    def log_density(u):
-        return both(u)[0]
+    def log_density(w):
+        return both(w)[0]
 
     @log_density.defjvp
     def _(primals, tangents):
-        (u,), (du,) = primals, tangents
-        value, grad = both(u)
-        return value, jnp.sum(grad * du, axis=-1)
+        (w,), (dw,) = primals, tangents
+        value, grad = both(w)
+        return value, jnp.sum(grad * dw, axis=-1)
 
     return log_density
 
@@ -245,8 +248,10 @@ def sample(scene, n_draws: int, *, chains: int = 4, warmup: int | None = None, s
 
 def _diagnostics(blackjax, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bulk ESS and rank-normalised split R-hat (n_free,) of draws (chains, draws, n_free)."""
+    if draws.shape[1] < 4:  # too few draws to split chains: no diagnostics
+        return np.full(draws.shape[2], np.nan), np.full(draws.shape[2], np.nan)
     ess = np.array([float(blackjax.diagnostics.ess_bulk(draws[:, :, j])) for j in range(draws.shape[2])])
-    if draws.shape[0] < 2 or draws.shape[1] < 4:
+    if draws.shape[0] < 2:
         return ess, np.full(draws.shape[2], np.nan)
     rhat = np.array([float(blackjax.diagnostics.rhat(draws[:, :, j])) for j in range(draws.shape[2])])
     return ess, rhat
