@@ -19,6 +19,7 @@ import pytest
 
 import fwdfit
 from fwdfit._parameters import FreeParameter
+from fwdfit._sample import _diagnostics, blackjax_module
 from fwdfit.cli import main
 
 pytest.importorskip("blackjax")
@@ -139,13 +140,16 @@ def test_sampling_a_scene_without_data_is_one_line_error(scene_path, tmp_path, c
     assert not out.exists()
 
 
-def test_one_chain_and_few_draws_write_null_diagnostics(scene_path, tmp_path):
-    """Too few draws for ESS and a single chain for R-hat: null in posterior.json, not NaN."""
-    out = tmp_path / "out"
-    assert main(["fit", str(scene_path), "--out", str(out), "--quiet", "--sample", "3", "--chains", "1",
-                 "--warmup", "10"]) == 0
-    posterior = json.loads((out / "posterior.json").read_text())
-    assert posterior["chains"] == 1 and posterior["draws_per_chain"] == 3
-    for p in posterior["parameters"].values():
-        assert p["ess"] is None and p["rhat"] is None and np.isfinite(p["mean"])
-    assert len((out / "chains.csv").read_text().splitlines()) == 4
+def test_diagnostics_of_independent_and_correlated_draws():
+    """Independent draws: ESS their number, R-hat 1; AR(1) draws with coefficient r:
+    ESS = N (1 - r) / (1 + r); too few draws give NaN (null in posterior.json)."""
+    rng = np.random.default_rng(0)
+    draws, r = rng.normal(size=(4, 2000, 2)), 0.8
+    for t in range(1, draws.shape[1]):
+        draws[:, t, 1] = r * draws[:, t - 1, 1] + draws[:, t, 1]
+    ess, rhat = _diagnostics(blackjax_module(), draws)
+    assert abs(ess[0] / 8000 - 1) < 0.3, ess  # the estimator's own scatter is ~10 %
+    assert abs(ess[1] / (8000 * (1 - r) / (1 + r)) - 1) < 0.3, ess
+    assert np.all(np.abs(rhat - 1) < 0.01), rhat
+    ess, rhat = _diagnostics(blackjax_module(), draws[:1, :3])
+    assert np.all(np.isnan(ess)) and np.all(np.isnan(rhat))

@@ -250,11 +250,10 @@ def _diagnostics(blackjax, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bulk ESS and rank-normalised split R-hat (n_free,) of draws (chains, draws, n_free)."""
     if draws.shape[1] < 4:  # too few draws to split chains: no diagnostics
         return np.full(draws.shape[2], np.nan), np.full(draws.shape[2], np.nan)
-    ess = np.array([float(blackjax.diagnostics.ess_bulk(draws[:, :, j])) for j in range(draws.shape[2])])
+    ess = np.asarray(jax.jit(blackjax.diagnostics.ess_bulk)(draws)).reshape(-1)  # jit: seconds, not tens
     if draws.shape[0] < 2:
         return ess, np.full(draws.shape[2], np.nan)
-    rhat = np.array([float(blackjax.diagnostics.rhat(draws[:, :, j])) for j in range(draws.shape[2])])
-    return ess, rhat
+    return ess, np.asarray(jax.jit(blackjax.diagnostics.rhat)(draws)).reshape(-1)
 
 
 def blackjax_module():
