@@ -31,6 +31,7 @@ def plot_corner(path: Path, posterior: Posterior) -> None:
             if j > i:
                 ax.set_axis_off()
                 continue
+            ax.ticklabel_format(useOffset=False)  # values as written, no "+1e3" beside the axis
             if i == j:
                 ax.hist(flat[:, i], bins=_BINS, color="C0", histtype="stepfilled", alpha=0.6)
                 ax.axvline(best[i], color="C3", lw=1)
