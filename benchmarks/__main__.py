@@ -28,6 +28,8 @@ BENCHMARKS = {
     "bench_tof": "time-of-flight FITS and NeXus stacks to per-bin profiles: time and peak memory",
     "tof_scaling": "time-of-flight bins: plan, trace, compile and evaluation time against bin count",
     "image_rows": "fit-image: rows per second (750-pixel rows) and accuracy on a curved edge",
+    "image_series": "fit-images: images per second, serial against a local Dask cluster",
+    "sampler": "NUTS posterior sampling: effective samples per second, the oxide's SLD valley",
 }
 
 

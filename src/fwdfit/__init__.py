@@ -30,6 +30,8 @@ from ._radiograph import profile_from_stacks as profile_from_stacks
 from ._reference import ReferenceLayer as ReferenceLayer
 from ._reference import trace_reference as trace_reference
 from ._reference import trace_reference_rows as trace_reference_rows
+from ._sample import Posterior as Posterior
+from ._sample import sample as sample
 from ._scene import FitSpec as FitSpec
 from ._scene import Instrument as Instrument
 from ._scene import Layer as Layer

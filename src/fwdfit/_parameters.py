@@ -86,12 +86,13 @@ class FreeParameter:
             return x + np.log(-np.expm1(-x))  # inverse softplus, stable for large x
         return (value - self.origin) / self.step
 
-    def from_unit(self, u):
-        """Unconstrained coordinate -> physical value inside the bounds (NumPy, elementwise)."""
-        u = np.asarray(u, dtype=float)
+    def from_unit(self, u, xp=np):
+        """Unconstrained coordinate -> physical value inside the bounds (elementwise; xp:
+        the array module, NumPy or ``jax.numpy``)."""
+        u = xp.asarray(u, dtype=float)
         if math.isfinite(self.low) and math.isfinite(self.high):
-            return self.low + (self.high - self.low) * 0.5 * (1.0 + np.tanh(0.5 * u / self._width))
-        softplus = np.logaddexp(0.0, u)
+            return self.low + (self.high - self.low) * 0.5 * (1.0 + xp.tanh(0.5 * u / self._width))
+        softplus = xp.logaddexp(0.0, u)
         if math.isfinite(self.low):
             return self.low + self.step * softplus
         if math.isfinite(self.high):
@@ -108,6 +109,18 @@ class FreeParameter:
         if math.isfinite(self.low) or math.isfinite(self.high):
             return self.step * sigmoid
         return np.full_like(u, self.step)
+
+    def log_value_per_unit(self, u, xp=np):
+        """log(d value / d u) at u (elementwise; xp: NumPy or ``jax.numpy``), exact where
+        ``value_per_unit`` underflows: the log-Jacobian of ``from_unit``."""
+        u = xp.asarray(u, dtype=float)
+        if math.isfinite(self.low) and math.isfinite(self.high):
+            x = u / self._width  # s = sigmoid(x): log s = -softplus(-x), log(1 - s) = -softplus(x)
+            return (math.log((self.high - self.low) / self._width)
+                    - xp.logaddexp(0.0, -x) - xp.logaddexp(0.0, x))
+        if math.isfinite(self.low) or math.isfinite(self.high):
+            return math.log(self.step) - xp.logaddexp(0.0, -u)
+        return xp.full_like(u, math.log(self.step))
 
     @property
     def origin(self) -> float:

@@ -110,6 +110,8 @@ def _run_fit(args) -> int:
     scene = load_scene(args.scene)
     if args.starts < 1:
         raise FwdfitError(f"--starts must be >= 1, got {args.starts}")
+    if args.sample is not None:
+        _check_sampling(args)
     if not args.no_cache:
         enable_compilation_cache()
     with warnings.catch_warnings():
@@ -117,9 +119,15 @@ def _run_fit(args) -> int:
         fitter = Fitter(scene, accuracy=args.accuracy, n_starts=args.starts, max_steps=args.max_steps,
                         progress=not args.quiet)
         result = fitter(seed=args.seed)
+    posterior = None if args.sample is None else _sample_posterior(args, fitter, result)
     write_fit(result, Path(args.out))
     print(result.table())
     print(f"compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s; wrote {args.out}")
+    if posterior is not None:
+        from ._sample_output import write_posterior
+
+        write_posterior(posterior, Path(args.out))
+        print(posterior.table())
     for note in result.warnings:
         if note != result.quality.summary():  # said once, below
             print(f"warning: {note}", file=sys.stderr)
@@ -199,6 +207,26 @@ def _run_fit_images(args) -> int:
     return 0
 
 
+def _check_sampling(args) -> None:
+    """Refuse bad sampling options, and a missing blackjax, before the fit."""
+    from ._sample import blackjax_module
+
+    for option, value, least in (("--sample", args.sample, 1), ("--chains", args.chains, 1),
+                                 ("--warmup", args.warmup, 10)):
+        if value is not None and value < least:
+            raise FwdfitError(f"{option} must be >= {least}, got {value}")
+    blackjax_module()
+
+
+def _sample_posterior(args, fitter, result):
+    from ._sample import sample
+
+    if not args.quiet:
+        print(f"sampling: {args.chains} chains, {args.sample} draws each after warm-up", flush=True)
+    return sample(fitter.scene, args.sample, chains=args.chains, warmup=args.warmup, seed=args.seed,
+                  fitter=fitter, result=result)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -239,6 +267,12 @@ def _parser() -> argparse.ArgumentParser:
                           "points (default 1: the scan alone)")
     fit.add_argument("--seed", type=int, default=0, help="seed for the random starting points")
     fit.add_argument("--max-steps", type=int, default=200, help="solver steps (default 200)")
+    fit.add_argument("--sample", type=int, default=None, metavar="N",
+                     help="after the fit, N posterior draws per chain with NUTS (needs fwdfit[sample]): "
+                          "DIR/chains.csv, posterior.json, corner.png")
+    fit.add_argument("--chains", type=int, default=4, metavar="C", help="NUTS chains (default 4)")
+    fit.add_argument("--warmup", type=int, default=None, metavar="W",
+                     help="NUTS warm-up steps per chain (default max(300, N/2))")
     fit.add_argument("--quiet", action="store_true", help="no progress output")
     fit.add_argument("--no-cache", action="store_true",
                      help="compile without the persistent compilation cache")
