@@ -152,10 +152,11 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights):
     gained_from = jnp.clip(-grazing_at_edge, critical, mass.a_max)
     root = jnp.sqrt(jnp.abs(k))
 
-    def v_at(a):
-        return jnp.abs(k) / jnp.square(a + _safe_sqrt(a * a - k))
+    def v_at(a):  # at most 1, also where no ray is above the critical angle (a = a_max < sqrt(k))
+        return jnp.minimum(jnp.abs(k) / jnp.square(a + _safe_sqrt(a * a - k)), 1.0)
 
     def reflected_mass(a_low, a_high):  # int_{a_low}^{a_high} R dM, a_low <= a_high
+        a_low, a_high = jnp.broadcast_arrays(a_low, a_high)
         v_low, v_high = v_at(a_low), v_at(a_high)  # v_high <= v_low
         base = mass.primitive(a_low)
         along = np.asarray(nodes).reshape((-1,) + (1,) * v_low.ndim)  # a leading node axis
