@@ -20,7 +20,10 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import re
+import shutil
 from pathlib import Path
 
 import equinox as eqx
@@ -34,6 +37,7 @@ import fwdfit
 from fwdfit._aperture import APERTURES
 from fwdfit._kernel import AngularMass, fresnel_transfer
 from fwdfit._plan import fresnel_nodes
+from fwdfit.cli import main
 from helpers import (DATA, al_layer, central_difference, load_reference, random_weights, replace_params,
                      rms, weighted_value, weighted_value_and_grad, write_scene)
 
@@ -255,3 +259,53 @@ def test_gradients_match_central_differences(hard, field, h):
 
         fd = central_difference(value, 0.0, h)
         assert abs(fd - analytic[i]) <= 1e-4 * max(abs(analytic[i]), 1e-3 * np.max(np.abs(analytic))), (i, fd)
+
+
+# --------------------------------------------------------------------------- the commands
+
+
+def test_simulate_command_on_a_fresnel_scene(tmp_path, capsys):
+    """``fwdfit simulate`` accepts ``fresnel = true`` (it was refused) and writes its T, which
+    differs from the same scene without Fresnel by the signal checked above."""
+    out = tmp_path / "out"
+    scene_path = FRESNEL / "al_boa_tilt0.24" / "scene.toml"
+    assert main(["simulate", str(scene_path), "--out", str(out)]) == 0
+    assert capsys.readouterr().err == ""
+    ref = _reference("al_boa_tilt0.24", "d01.1mm")
+    table = np.loadtxt(out / "d01.1mm.csv", delimiter=",", skiprows=1)
+    assert rms(table[:, 1] - ref["T"]) <= RMS_TOLERANCE
+    assert rms(table[:, 1] - ref["T_sharp"]) > 2 * rms(table[:, 1] - ref["T"])
+
+
+FIT_TRUTH = {"sample.tilt_deg": 0.24, "sample.centre_um": 0.0, "layers.Al.thickness_um": 1000.0,
+             "layers.Al.sld_e6_per_A2": 2.078}
+FIT_ERROR = 0.002  # T_err given to the tracer's profiles (their own noise is ~4e-4)
+
+
+@pytest.mark.slow
+def test_fit_command_recovers_the_tracer_truth(tmp_path, capsys):
+    """``fwdfit fit`` of the tracer's Fresnel profiles (BOA, 0.24°, 1.1 and 10 mm) with
+    ``fresnel = true`` from starts ~10 % off: tilt within 0.02°, thickness within 2 µm,
+    centre within 1 µm, SLD within 5 % (the tolerances of test_fit.py), chi2/dof below 1."""
+    case = FRESNEL / "al_boa_tilt0.24"
+    text = (case / "scene.toml").read_text()
+    for name in _profile_names(case / "scene.toml"):
+        ref = _reference("al_boa_tilt0.24", name)
+        rows = np.column_stack([ref["x_um"], ref["T"], np.full_like(ref["T"], FIT_ERROR)])
+        np.savetxt(tmp_path / f"{name}.csv", rows, delimiter=",", fmt="%.9g", header="x_um,T,T_err", comments="")
+        text = re.sub(r"x_min_um = \S+\nx_max_um = \S+", f'file = "{name}.csv"', text, count=1)
+    assert text.count("file = \"d") == 2
+    text = (text.replace("tilt_deg = 0.24", "tilt_deg = 0.27").replace("thickness_um = 1000", "thickness_um = 1050")
+            .replace("centre_um = 0.0", "centre_um = 3.0").replace("sld_e6_per_A2 = 2.078", "sld_e6_per_A2 = 2.3"))
+    text += "\n[fit]\nvary = [" + ", ".join(f'"{k}"' for k in FIT_TRUTH) + "]\n"
+    (tmp_path / "scene.toml").write_text(text)
+    shutil.copy(case / "spectrum_boa.csv", tmp_path)
+    assert main(["fit", str(tmp_path / "scene.toml"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    fitted = {name: entry["value"] for name, entry in result["parameters"].items()}
+    print(fitted, result["chi2_reduced"])
+    assert abs(fitted["sample.tilt_deg"] - 0.24) < 0.02
+    assert abs(fitted["layers.Al.thickness_um"] - 1000.0) < 2.0
+    assert abs(fitted["sample.centre_um"]) < 1.0
+    assert fitted["layers.Al.sld_e6_per_A2"] == pytest.approx(2.078, rel=0.05)
+    assert result["chi2_reduced"] < 1.0
