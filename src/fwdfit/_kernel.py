@@ -27,6 +27,7 @@ import numpy as np
 from ._aperture import APERTURES
 
 _TINY = 1e-30
+_NO_CONTRAST = 1e-12  # |k| below this reflects as this (a transfer of ~1e-13 of the beam)
 
 
 def _safe_sqrt(x):
@@ -145,7 +146,7 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights):
     (exact with two nodes) and with a (.)^(3/2) end point at the circle's rim.
     nodes, weights: Gauss-Legendre on [0, 1] (static tuples).
     """
-    k = jnp.where(jnp.abs(k) < _TINY, _TINY, k)  # no contrast: a negligible, finite transfer
+    k = jnp.where(jnp.abs(k) < _NO_CONTRAST, _NO_CONTRAST, k)  # a negligible transfer, finite in float32
     critical = _critical(mass, k)
     incoming = _safe_sqrt(jnp.maximum(grazing_at_edge, 0.0) ** 2 + k)
     lost_up_to = jnp.clip(incoming, critical, mass.a_max)
@@ -153,7 +154,7 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights):
     root = jnp.sqrt(jnp.abs(k))
 
     def v_at(a):  # at most 1, also where no ray is above the critical angle (a = a_max < sqrt(k))
-        return jnp.minimum(jnp.abs(k) / jnp.square(a + _safe_sqrt(a * a - k)), 1.0)
+        return jnp.abs(k) / jnp.maximum(jnp.square(a + _safe_sqrt(a * a - k)), jnp.abs(k))
 
     def reflected_mass(a_low, a_high):  # int_{a_low}^{a_high} R dM, a_low <= a_high
         a_low, a_high = jnp.broadcast_arrays(a_low, a_high)
