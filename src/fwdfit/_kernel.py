@@ -14,16 +14,20 @@ Frame: the "local" frame in which rays cross from medium 1 (left) into medium 2
 Paraxial optics: angles are slopes (|angle| < 0.05 rad). Lengths in µm.
 
 Snell at a grazing angle: a2^2 = a^2 - k with k = 2 (delta_2 - delta_1). For
-k > 0 rays with a^2 < k are totally reflected (a2 = -a).
+k > 0 rays with a^2 < k are totally reflected (a2 = -a). With Fresnel partial
+reflection (``fresnel_transfer``) the other rays are reflected with probability
+R = ((a - a2) / (a + a2))^2, for either sign of k.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from ._aperture import APERTURES
 
 _TINY = 1e-30
+_NO_CONTRAST = 1e-12  # |k| below this reflects as this (a transfer of ~1e-13 of the beam)
 
 
 def _safe_sqrt(x):
@@ -104,21 +108,79 @@ def deflected_kinks(mass: AngularMass, k, right_of_interface):
     of it only the reflected ones, from the fan's start and the critical angle.
     """
     critical = _critical(mass, k)
-    refracted = (_safe_sqrt(critical * critical - k) * (critical * critical > k),
-                 _safe_sqrt(mass.a_max * mass.a_max - k) * (mass.a_max * mass.a_max > k))
-    reflected = (-mass.a_min, -critical)
-    return tuple(jnp.where(right_of_interface, a, b) for a, b in zip(refracted, reflected))
+    return _sided_kinks(_refracted_kinks(mass, k, critical), (-mass.a_min, -critical), right_of_interface)
 
 
-def landing_range(offset, half_width, k, xp=jnp):
+def fresnel_kinks(mass: AngularMass, k, right_of_interface):
+    """Grazing angles at the edge where ``fresnel_transfer`` has kinks.
+
+    As ``deflected_kinks`` right of the interface's projection; left of it the
+    partially reflected rays land, from the critical angle and the fan's end.
+    """
+    critical = _critical(mass, k)
+    return _sided_kinks(_refracted_kinks(mass, k, critical), (-critical, -mass.a_max), right_of_interface)
+
+
+def _refracted_kinks(mass: AngularMass, k, critical):
+    """Outgoing angles of the refracted rays from the critical angle and from the fan's end."""
+    return (_safe_sqrt(critical * critical - k) * (critical * critical > k),
+            _safe_sqrt(mass.a_max * mass.a_max - k) * (mass.a_max * mass.a_max > k))
+
+
+def _sided_kinks(right, left, right_of_interface):
+    return tuple(jnp.where(right_of_interface, a, b) for a, b in zip(right, left))
+
+
+def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights):
+    """Crossing rays that Fresnel reflection moves from the refracted to the reflected beam.
+
+    Of the rays above the critical angle (every ray for k <= 0) a fraction R(a) =
+    ((a - a2) / (a + a2))^2 is reflected (leaves at -a) instead of refracted. Returns
+    (loss, gain): the refracted rays landing left of each edge that are lost, and the
+    reflected rays that land there, both as masses like ``deflected_cumulative``.
+
+    With v = |k| / (a + a2)^2 (v in (0, 1], 1 at the critical angle, or at a = 0 for
+    k < 0) R = v^2 and a(v) = sqrt|k| (v^-1/2 + sign(k) v^1/2) / 2, so that, after an
+    integration by parts against the mass M(a), int R dM = [R M] + int 2 v M(a(v)) dv:
+    smooth in v through the critical angle, polynomial in v for the square aperture
+    (exact with two nodes) and with a (.)^(3/2) end point at the circle's rim.
+    nodes, weights: Gauss-Legendre on [0, 1] (static tuples).
+    """
+    k = jnp.where(jnp.abs(k) < _NO_CONTRAST, _NO_CONTRAST, k)  # a negligible transfer, finite in float32
+    critical = _critical(mass, k)
+    incoming = _safe_sqrt(jnp.maximum(grazing_at_edge, 0.0) ** 2 + k)
+    lost_up_to = jnp.clip(incoming, critical, mass.a_max)
+    gained_from = jnp.clip(-grazing_at_edge, critical, mass.a_max)
+    root = jnp.sqrt(jnp.abs(k))
+
+    def v_at(a):  # at most 1, also where no ray is above the critical angle (a = a_max < sqrt(k))
+        return jnp.abs(k) / jnp.maximum(jnp.square(a + _safe_sqrt(a * a - k)), jnp.abs(k))
+
+    def reflected_mass(a_low, a_high):  # int_{a_low}^{a_high} R dM, a_low <= a_high
+        a_low, a_high = jnp.broadcast_arrays(a_low, a_high)
+        v_low, v_high = v_at(a_low), v_at(a_high)  # v_high <= v_low
+        base = mass.primitive(a_low)
+        along = np.asarray(nodes).reshape((-1,) + (1,) * v_low.ndim)  # a leading node axis
+        v = v_high + (v_low - v_high) * along
+        s = jnp.sqrt(v)
+        a = jnp.clip(0.5 * (root / s + (k / root) * s), a_low, a_high)
+        integral = jnp.tensordot(np.asarray(weights), 2.0 * v * (mass.primitive(a) - base), 1)
+        return v_high**2 * (mass.primitive(a_high) - base) + (v_low - v_high) * integral
+
+    return reflected_mass(critical, lost_up_to), reflected_mass(gained_from, mass.a_max)
+
+
+def landing_range(offset, half_width, k, fresnel: bool, xp=jnp):
     """Outgoing grazing angles (lo, hi) (rad) of every ray that crosses the interface.
 
     offset, half_width: as in ``AngularMass`` (the crossing rays have grazing angles
     a in [max(offset - half_width, 0), max(offset + half_width, 0)]); k: the value
     of largest |k| over the spectrum (k ~ lambda^2 keeps its sign). Straight,
     refracted and reflected rays all leave at angles in [lo, hi]: such a ray lands
-    at (angle * lever) from the interface's projection. xp: the array module (``jax.numpy`` in
-    the model, ``numpy`` for the static plan, which must not dispatch JAX operations).
+    at (angle * lever) from the interface's projection. fresnel: whether every
+    crossing ray may be reflected (where there is contrast). xp: the array module
+    (``jax.numpy`` in the model, ``numpy`` for the static plan, which must not
+    dispatch JAX operations).
     """
     a_min = xp.maximum(offset - half_width, 0.0)
     a_max = xp.maximum(offset + half_width, 0.0)
@@ -127,4 +189,6 @@ def landing_range(offset, half_width, k, xp=jnp):
     refracted = xp.sqrt(xp.maximum(a_min * a_min - k, 0.0))
     lo = xp.where(k > 0, xp.where(a_min < root, reflected, refracted), a_min)
     hi = xp.where(k > 0, a_max, xp.sqrt(a_max * a_max - xp.minimum(k, 0.0)))
+    if fresnel:
+        lo = xp.where(k != 0, -a_max, lo)
     return lo, hi

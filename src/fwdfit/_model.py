@@ -7,7 +7,8 @@ T = T_step + sum over interfaces and crossing directions of a deflection kernel.
   (penumbra Delta * D / L, magnification L / (L - Delta)); closed form per pixel.
 - The kernel of an interface (``_kernel.py``) replaces, for the rays that cross
   it inside the sample, the step assignment by their true path: straight (T_att)
-  or refracted / totally reflected (T). Interfaces act independently: exact when
+  or refracted / totally reflected (T), and with the Fresnel option partially
+  reflected above the critical angle. Interfaces act independently: exact when
   every layer is thicker than the sideways drift depth * |angle| (~20 µm at 2 mm
   depth), an approximation for thinner layers. Its depth integral is split, per
   detector edge, where the integrand kinks, so the model is smooth in its parameters.
@@ -26,8 +27,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._aperture import APERTURES
-from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, landing_range,
-                      straight_cumulative, straight_kinks)
+from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, fresnel_kinks, fresnel_transfer,
+                      landing_range, straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
 DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane
@@ -83,6 +84,9 @@ class ProfileGroup(eqx.Module):
     n_sub: int = eqx.field(static=True)
     n_pad: int = eqx.field(static=True)
     window: int = eqx.field(static=True)  # kernel window half-width, sub-bins
+    # Fresnel partial reflection: Gauss-Legendre on [0, 1] for ``_kernel.fresnel_transfer``; () when off
+    fresnel_nodes: tuple[float, ...] = eqx.field(static=True)
+    fresnel_weights: tuple[float, ...] = eqx.field(static=True)
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -237,6 +241,12 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     reflected_path = jnp.exp(-mu_from_l * depth_um)
     deflected = wavelength_weight @ jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale,
                                             axis=-2)
+    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks
+        z, scale, mass, grazing = nodes(lambda m: fresnel_kinks(m, k_l, aim_l > 0), aim_l)
+        lost, gained = fresnel_transfer(mass, grazing, k_l[..., None], group.fresnel_nodes,
+                                        group.fresnel_weights)
+        deflected = deflected + wavelength_weight @ jnp.sum(
+            (reflected_path * gained - true_path(z) * lost) * scale, axis=-2)
     return deflected - stepped, attenuation
 
 
@@ -292,7 +302,7 @@ def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, di
     """
     to_sample_um = group.aperture_distance_um - distance_um
     lo, hi = landing_range(sign * (b / to_sample_um - slope), 0.5 * group.aperture_um / to_sample_um,
-                           k_longest)
+                           k_longest, bool(group.fresnel_nodes))
     return b + slope * distance_um + sign * 0.5 * (lo + hi) * (distance_um - z_mid)
 
 
