@@ -7,6 +7,9 @@ Fast: no fit of a whole scene here (those are in test_fit.py and test_fit_starts
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -258,3 +261,39 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
         np.testing.assert_array_equal(third.predict(values)[0], first.predict(values)[0])
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+
+
+_SHARDED_PROBE = """
+import sys, jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import fwdfit
+from fwdfit._predict import Predictor
+fitter = fwdfit.Fitter(sys.argv[1])
+values = np.array([[990.0], [995.0], [1000.0], [1005.0], [1010.0]])
+single = fitter.predict(values)
+sharded = Predictor(fitter.model, fitter.assemble, 1, rows_per_call=3, devices=jax.devices())
+spread = sharded._compiled.input_shardings[0][1].device_set
+both = sharded(values)
+print(len(jax.devices()), sharded.rows_per_call, len(spread),
+      max(float(np.max(np.abs(a - b))) for a, b in zip(single, both)))
+"""
+
+
+def test_rows_are_sharded_across_devices(tmp_path):
+    """On two devices (two host devices forced, as on a machine with two accelerators) a
+    call's rows are split between them (rows per call rounded up to a multiple of 2) and
+    the predictions equal the one-device program's to rounding."""
+    path = tmp_path / "scene.toml"
+    rows = np.column_stack([-600 + (np.arange(500) + 0.5) * PIXEL_UM, np.ones(500), np.full(500, 0.01)])
+    np.savetxt(tmp_path / "line.csv", rows, delimiter=",", header="x_um,T,T_err", comments="")
+    path.write_text(SCENE_WITHOUT_STARTS.replace('x_min_um = -600.0\nx_max_um = 600.0', 'file = "line.csv"')
+                    .replace('sld_e6_per_A2 = 2.078', 'sld_e6_per_A2 = 2.078\nthickness_um = 1000.0\nmu_per_m = 9.0')
+                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n[model]\naccuracy = 0.01\n')
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               FWDFIT_CACHE_DIR="off")
+    done = subprocess.run([sys.executable, "-c", _SHARDED_PROBE, str(path)], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    devices, per_call, spread, difference = done.stdout.split()[-4:]
+    assert (int(devices), int(per_call), int(spread)) == (2, 4, 2)
+    assert float(difference) < 1e-12

@@ -11,7 +11,8 @@ geometry neither traces nor compiles the model. Within one process (a Dask worke
 fitting image after image, say) the compiled program itself is kept too (``_COMPILED``),
 so a geometry compiles once per process. On a CPU the program takes one
 parameter vector per call (a batch gains no parallelism there); on an accelerator it
-takes ``rows_per_call`` vectors at once (vmap).
+takes ``rows_per_call`` vectors at once (vmap), and on several accelerators those rows
+are sharded across the devices (a 1-D mesh over the rows; the model is replicated).
 """
 
 from __future__ import annotations
@@ -50,15 +51,20 @@ class Predictor:
     """T_model and T_att (rows, n_pixel_total) for rows of free values (rows, n_free).
 
     model, assemble: the forward model and the map from free values to its inputs
-    (``_parameters.assembler``). Compiling happens in the constructor;
+    (``_parameters.assembler``). devices: the devices the rows of a call are sharded
+    across (default: every accelerator, or one CPU). Compiling happens in the constructor;
     ``compile_time_s`` says how long it took (short when the persistent cache had it).
     """
 
     def __init__(self, model: ForwardModel, assemble: Assembler, n_free: int,
-                 rows_per_call: int | None = None):
+                 rows_per_call: int | None = None, devices: list | None = None):
+        on_cpu = jax.default_backend() == "cpu"
+        if devices is None:
+            devices = jax.devices()[:1] if on_cpu else jax.devices()
         if rows_per_call is None:
-            rows_per_call = 1 if jax.default_backend() == "cpu" else 64
-        self.rows_per_call, self.n_free = rows_per_call, n_free
+            rows_per_call = 1 if on_cpu and len(devices) == 1 else 64 * len(devices)
+        rows_per_call = -(-rows_per_call // len(devices)) * len(devices)  # whole rows per device
+        self.rows_per_call, self.n_free, self.devices = rows_per_call, n_free, tuple(devices)
         start = time.perf_counter()
         dynamic, static = eqx.partition((model, assemble), eqx.is_array)
         self._leaves, treedef = jax.tree_util.tree_flatten(dynamic)
@@ -68,10 +74,18 @@ class Predictor:
             return _predict_rows(model, assemble, values)
 
         example = jnp.zeros((rows_per_call, n_free))
-        key = _program_key(self._leaves, example, f"{treedef}|{rows_per_call}|{n_free}")
+        self._rows_sharding = None
+        if len(devices) > 1:
+            mesh = jax.sharding.Mesh(np.array(devices), ("rows",))
+            self._rows_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("rows"))
+            replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+            self._leaves = jax.device_put(self._leaves, replicated)
+            example = jax.device_put(example, self._rows_sharding)
+        key = _program_key(self._leaves, example, f"{treedef}|{rows_per_call}|{n_free}|{len(devices)}")
         self._compiled = _COMPILED.get(key)
         if self._compiled is None:
-            program = _exported(run, self._leaves, example, key)
+            # a stored module serves one device; a sharded program is traced here
+            program = _exported(run, self._leaves, example, key) if len(devices) == 1 else run
             self._compiled = jax.jit(program).lower(self._leaves, example).compile()
             if len(_COMPILED) >= _MAX_COMPILED:
                 del _COMPILED[next(iter(_COMPILED))]
@@ -84,7 +98,9 @@ class Predictor:
         values = np.atleast_2d(np.asarray(values, dtype=float))
         n_rows, chunk = values.shape[0], self.rows_per_call
         padded = np.concatenate([values, np.repeat(values[-1:], -n_rows % chunk, axis=0)])
-        outputs = [self._compiled(self._leaves, jnp.asarray(padded[i:i + chunk]))
+        place = jnp.asarray if self._rows_sharding is None else (
+            lambda rows: jax.device_put(rows, self._rows_sharding))
+        outputs = [self._compiled(self._leaves, place(padded[i:i + chunk]))
                    for i in range(0, padded.shape[0], chunk)]
         self.n_evaluations += n_rows
         T = np.concatenate([np.asarray(o[0]) for o in outputs])[:n_rows]
