@@ -54,6 +54,23 @@ def test_outer_edges_of_a_blurred_step(noise, tolerance_um):
     assert level == pytest.approx(1.0, abs=3 * noise / math.sqrt(65))
 
 
+def test_outer_edges_of_a_transparent_block_from_its_refraction_spikes():
+    """A block absorbing 0.3 % (below the 0.5 % noise) with refraction gain outside and loss
+    inside each edge (0.2 over 5 µm): the edges half-way between gain and loss, within one
+    pixel of the truth."""
+    rng = np.random.default_rng(4)
+    x = -700.0 + (np.arange(584) + 0.5) * PIXEL_UM
+    left, right = -500.3, 499.1
+    T = np.where((x > left) & (x < right), 0.997, 1.0) + rng.normal(0.0, 0.005, x.shape)
+    for edge in (left, right):
+        outward = np.sign(edge)
+        T[(outward * (x - edge) > 0) & (outward * (x - edge) < 5)] += 0.2
+        T[(outward * (edge - x) > 0) & (outward * (edge - x) < 5)] -= 0.2
+    found_left, found_right, _ = outer_edges(x, T, blur_um=8.0, pixel_um=PIXEL_UM)
+    assert found_left == pytest.approx(left, abs=PIXEL_UM)
+    assert found_right == pytest.approx(right, abs=PIXEL_UM)
+
+
 def test_outer_edges_without_a_sample():
     """Open beam only: no edges."""
     T = 1.0 + np.random.default_rng(2).normal(0.0, 0.005, 500)

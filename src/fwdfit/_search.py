@@ -85,8 +85,9 @@ def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
                   & np.r_[coarse_chi2[:-1] <= coarse_chi2[1:], True])
         minima = np.flatnonzero(is_min)
         minima = minima[np.argsort(coarse_chi2[minima])][:_TILT_MINIMA]
+        minima = minima[np.isfinite(coarse_chi2[minima])]
         refined = _inside(free, at_tilts(base_projected, np.concatenate(
-            [coarse[m, tilt] + np.array(_TILT_REFINE_DEG) for m in minima])))
+            [coarse[m, tilt] + np.array(_TILT_REFINE_DEG) for m in minima] + [np.zeros(0)])))
         points = np.concatenate([points, coarse, refined])
         chi2 = np.concatenate([chi2, coarse_chi2, chi2_of(refined)])
     if slds:

@@ -29,6 +29,9 @@ from ._scene import Scene
 _MEDIAN_NOISE = 1.25  # noise of a running median over that of a running mean
 _PLATEAU_SIGNIFICANCE = 8.0  # the plateau inside an edge, in the filtered noise: half of it is 4 sigma clear
 _MIN_RUN_UM = 12.0  # a stretch below the open beam this long marks the sample
+_SPIKE_SIGNIFICANCE = 8.0  # refraction spikes that mark the edges of a nearly transparent sample ...
+_SPIKE_PAIR_UM = 30.0  # ... the gain and loss beside one edge lie this close ...
+_TRANSPARENT = 30.0  # ... and give the edges where they exceed the plateau's drop this many times
 _PLATEAU_UM = 20.0  # stretch inside an edge whose median gives the plateau level
 _REFRACTION_MARGIN_UM = 8.0  # refraction fringes beside an edge, beyond the penumbra
 _SEGMENT_BIN_UM = 4.0  # bin width of the segmentation ...
@@ -82,8 +85,8 @@ def _walk_out(x, drop, half: float, start: int, step: int) -> float:
     i = start
     while 0 <= i + step < len(drop) and drop[i + step] > half:
         i += step
-    if not 0 <= i + step < len(drop):
-        return float(x[i])
+    if not 0 <= i + step < len(drop) or drop[i] <= drop[i + step]:
+        return float(x[i])  # the end, or a start already at half the drop
     fraction = (drop[i] - half) / (drop[i] - drop[i + step])
     return float(x[i] + fraction * (x[i + step] - x[i]))
 
@@ -118,9 +121,30 @@ def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float,
             if min(left_level, right_level) > _PLATEAU_SIGNIFICANCE * noise_filtered:
                 left = _walk_out(x_um, drop, 0.5 * left_level, a, -1)
                 right = _walk_out(x_um, drop, 0.5 * right_level, b, +1)
-                return left, right, level
+                if right > left:
+                    spikes = _refraction_edges(x_um, T, level, noise)
+                    transparent = (spikes is not None and np.max(np.abs(T - level))
+                                   > _TRANSPARENT * min(left_level, right_level))
+                    return spikes if transparent else (left, right, level)
         width = 2 * width + 1
-    return None
+    return _refraction_edges(x_um, T, level, noise)
+
+
+def _refraction_edges(x_um, T, level: float, noise: float) -> tuple[float, float, float] | None:
+    """Outer edges of a sample too transparent to show its plateau, from its outermost
+    refraction spikes (a 3-pixel median _SPIKE_SIGNIFICANCE noise off the open level): each
+    edge half-way between the gain outside it and the loss inside it, the extremes within
+    _SPIKE_PAIR_UM of the outermost spike; None without spikes on two sides."""
+    deviation = running_median(T, 3) - level
+    strong = np.flatnonzero(np.abs(deviation) > _SPIKE_SIGNIFICANCE * noise)
+    if len(strong) < 2 or x_um[strong[-1]] - x_um[strong[0]] < 2 * _SPIKE_PAIR_UM:
+        return None
+
+    def edge(near: np.ndarray) -> float:
+        return 0.5 * float(x_um[near[np.argmax(deviation[near])]] + x_um[near[np.argmin(deviation[near])]])
+
+    return (edge(strong[x_um[strong] < x_um[strong[0]] + _SPIKE_PAIR_UM]),
+            edge(strong[x_um[strong] > x_um[strong[-1]] - _SPIKE_PAIR_UM]), level)
 
 
 def running_median(values: np.ndarray, n: int) -> np.ndarray:
