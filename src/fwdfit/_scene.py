@@ -366,10 +366,10 @@ def _spectra(path: Path, table: Any) -> dict[str, Spectrum]:
         limits = [reader.number(key, positive=True) for key in _BAND_KEYS] if band else []
         for key, value in zip(_BAND_KEYS, limits):
             check_domain("lambda_A", value, f"{path}: {reader.key(key)}")
+        file = path.parent / reader.string("file") if reader.has("file") else None
         try:  # the table's errors name the table; this names the scene and key too
             table = None
-            if reader.has("file"):
-                file = path.parent / reader.string("file")
+            if file is not None:
                 columns = read_columns(file, ["lambda_A", "weight"])
                 check_domain_rows("lambda_A", columns["lambda_A"], f"{file}: lambda_A")
                 table = TabulatedSpectrum(columns["lambda_A"], columns["weight"], file)

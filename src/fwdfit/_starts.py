@@ -127,7 +127,7 @@ def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float,
                                    > _TRANSPARENT * min(left_level, right_level))
                     return spikes if transparent else (left, right, level)
         width = 2 * width + 1
-    return _refraction_edges(x_um, T, level, noise)
+    return None
 
 
 def _refraction_edges(x_um, T, level: float, noise: float) -> tuple[float, float, float] | None:
@@ -215,6 +215,10 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
         edges = outer_edges(p.x_um, T[i], _blur_um(scene, p), pixel)
         found.append(edges)
     usable = [i for i, e in enumerate(found) if e is not None]
+    if not usable:  # a sample too transparent to show its plateau in any profile
+        found = [_refraction_edges(p.x_um, T[i], _open_level(T[i]), max(noise_sigma(T[i]), 1e-6))
+                 for i, p in enumerate(profiles)]
+        usable = [i for i, e in enumerate(found) if e is not None]
     if not usable:
         return Estimate(values, ())
     sharpest = min(usable, key=lambda i: _blur_um(scene, profiles[i]))
