@@ -10,6 +10,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -252,15 +253,22 @@ def test_free_values_may_have_no_start(tmp_path, capsys):
         fwdfit.load_scene(path)
 
 
-def test_compiled_model_is_kept_between_runs(tmp_path):
-    """With the cache on, a second Fitter of the same geometry loads the stored program
-    (no tracing, no compilation) and predicts the same numbers to the last bit."""
+def _open_beam_line_scene(tmp_path, extra: str = "") -> Path:
+    """A one-profile Al scene on a 500-pixel open-beam line, its thickness free; ``extra``
+    appended (TOML)."""
     path = tmp_path / "scene.toml"
     rows = np.column_stack([-600 + (np.arange(500) + 0.5) * PIXEL_UM, np.ones(500), np.full(500, 0.01)])
     np.savetxt(tmp_path / "line.csv", rows, delimiter=",", header="x_um,T,T_err", comments="")
     path.write_text(SCENE_WITHOUT_STARTS.replace('x_min_um = -600.0\nx_max_um = 600.0', 'file = "line.csv"')
                     .replace('sld_e6_per_A2 = 2.078', 'sld_e6_per_A2 = 2.078\nthickness_um = 1000.0\nmu_per_m = 9.0')
-                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n')
+                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n' + extra)
+    return path
+
+
+def test_compiled_model_is_kept_between_runs(tmp_path):
+    """With the cache on, a second Fitter of the same geometry loads the stored program
+    (no tracing, no compilation) and predicts the same numbers to the last bit."""
+    path = _open_beam_line_scene(tmp_path)
     before = jax.config.jax_compilation_cache_dir
     try:
         fwdfit.enable_compilation_cache(tmp_path / "cache")
@@ -301,12 +309,7 @@ def test_rows_are_sharded_across_devices(tmp_path):
     """On two devices (two host devices forced, as on a machine with two accelerators) a
     call's rows are split between them (rows per call rounded up to a multiple of 2) and
     the predictions equal the one-device program's to rounding."""
-    path = tmp_path / "scene.toml"
-    rows = np.column_stack([-600 + (np.arange(500) + 0.5) * PIXEL_UM, np.ones(500), np.full(500, 0.01)])
-    np.savetxt(tmp_path / "line.csv", rows, delimiter=",", header="x_um,T,T_err", comments="")
-    path.write_text(SCENE_WITHOUT_STARTS.replace('x_min_um = -600.0\nx_max_um = 600.0', 'file = "line.csv"')
-                    .replace('sld_e6_per_A2 = 2.078', 'sld_e6_per_A2 = 2.078\nthickness_um = 1000.0\nmu_per_m = 9.0')
-                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n[model]\naccuracy = 0.01\n')
+    path = _open_beam_line_scene(tmp_path, '[model]\naccuracy = 0.01\n')
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
                FWDFIT_CACHE_DIR="off")
     done = subprocess.run([sys.executable, "-c", _SHARDED_PROBE, str(path)], env=env, capture_output=True,
