@@ -117,6 +117,29 @@ def rms(a) -> float:
 # --------------------------------------------------------------------------- scenes on the fly
 
 
+def scene_differences(a, b, where: str = "scene") -> list[str]:
+    """Where two scenes (or any of their parts) differ, field by field: arrays bit for bit
+    (NaN equal to NaN), paths as the files they name; a scene's own ``path`` is ignored."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a) and type(a) is type(b):
+        return [d for f in dataclasses.fields(a) if f.compare and not (where == "scene" and f.name == "path")
+                for d in scene_differences(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")]
+    if isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys():
+        return [d for k in a for d in scene_differences(a[k], b[k], f"{where}[{k!r}]")]
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in scene_differences(x, y, f"{where}[{i}]")]
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        same = (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
+                and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+        return [] if same else [where]
+    if isinstance(a, Path) and isinstance(b, Path):
+        return [] if a.resolve() == b.resolve() else [f"{where}: {a} != {b}"]
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return []
+    return [] if type(a) is type(b) and a == b else [f"{where}: {a!r} != {b!r}"]
+
+
 def _toml_value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"

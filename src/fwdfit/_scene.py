@@ -45,6 +45,13 @@ class Layer:
     material: MaterialConstants | None = None
     density_scale: float = 1.0
 
+    @classmethod
+    def from_material(cls, name: str, thickness_um: float, material: MaterialConstants,
+                      density_scale: float = 1.0) -> Layer:
+        """A layer with the constants of ``material`` (``constants_from_formula`` or NCrystal)."""
+        return cls(name, thickness_um, material.sld_e6_per_A2, material.mu_per_m,
+                   material.mu_per_m_per_A, material=material, density_scale=density_scale)
+
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
@@ -92,6 +99,13 @@ class Profile:
     image: np.ndarray | None = None  # (rows, n) normalised transmission, NaN = masked
     image_err: np.ndarray | None = None  # (rows, n) its 1-sigma errors, if given
     image_file: Path | None = None
+    image_err_file: Path | None = None
+
+
+def pixel_grid(x_min_um: float, n_pixels: int, pixel_um: float) -> np.ndarray:
+    """Centres (n_pixels,) of pixels of ``pixel_um`` starting at ``x_min_um``, as a scene's
+    ``x_min_um``/``x_max_um`` or an image's ``x0_um`` gives them."""
+    return x_min_um + (np.arange(n_pixels) + 0.5) * pixel_um
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,7 +121,7 @@ class Scene:
     instruments: dict[str, Instrument]  # "" is the default [instrument]
     spectra: dict[str, Spectrum]
     profiles: tuple[Profile, ...]
-    fit: FitSpec
+    fit: FitSpec = dataclasses.field(default_factory=FitSpec)
     accuracy: float = DEFAULT_ACCURACY
     path: Path | None = None
 
@@ -398,7 +412,7 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         if instrument not in instruments:
             reader.fail(reader.key("instrument"), f"no instrument named {instrument!r}")
         pixel_um = instruments[instrument].pixel_um
-        T = T_err = file = image = image_err = image_file = None
+        T = T_err = file = image = image_err = image_file = err_file = None
         for key, needs in (("image", "file"), ("image", "x_min_um"), ("image", "x_max_um"),
                            ("image_err", "file"), ("x0_um", "file")):
             if reader.has(key) and reader.has(needs):
@@ -410,7 +424,7 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             image_file = path.parent / reader.string("image")
             err_file = path.parent / reader.string("image_err") if reader.has("image_err") else None
             image, image_err = read_image(reader, image_file, err_file)
-            x_um = reader.number("x0_um", 0.0) + (np.arange(image.shape[1]) + 0.5) * pixel_um
+            x_um = pixel_grid(reader.number("x0_um", 0.0), image.shape[1], pixel_um)
         elif reader.has("file"):
             file = path.parent / reader.string("file")
             columns = read_columns(file, ["x_um", "T"], ["T_err"])
@@ -431,12 +445,12 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             if n_pixels > MAX_PIXELS:
                 reader.fail(reader.key("x_max_um"),
                             f"the pixel grid has {n_pixels} pixels, more than {MAX_PIXELS} ({SEE})")
-            x_um = x_min + (np.arange(n_pixels) + 0.5) * pixel_um
+            x_um = pixel_grid(x_min, n_pixels, pixel_um)
         profiles.append(Profile(
             name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
             shift_um=reader.number("shift_um", 0.0), norm=reader.number("norm", 1.0, positive=True),
             background=reader.number("background", 0.0), file=file, image=image, image_err=image_err,
-            image_file=image_file))
+            image_file=image_file, image_err_file=err_file))
     return tuple(profiles)
 
 
@@ -474,7 +488,8 @@ def with_image(scene: Scene, image_file: str | Path) -> Scene:
     if image.shape != profile.image.shape:
         raise FwdfitError(f"{image_file}: {image.shape[0]} x {image.shape[1]} pixels, the template image "
                           f"{profile.image_file.name} {profile.image.shape[0]} x {profile.image.shape[1]}")
-    replaced = dataclasses.replace(profile, image=image, image_err=None, image_file=Path(image_file))
+    replaced = dataclasses.replace(profile, image=image, image_err=None, image_file=Path(image_file),
+                                   image_err_file=None)
     profiles = scene.profiles[:index] + (replaced,) + scene.profiles[index + 1:]
     return dataclasses.replace(scene, profiles=profiles)
 
