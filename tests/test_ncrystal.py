@@ -13,7 +13,7 @@ import pytest
 
 NCrystal = pytest.importorskip("NCrystal")
 
-from fwdfit._fit_output import scene_toml  # noqa: E402
+from fwdfit import save_scene  # noqa: E402
 from fwdfit._plan import build_model  # noqa: E402
 from fwdfit._reference import ReferenceLayer, trace_reference  # noqa: E402
 from fwdfit._scene import load_scene  # noqa: E402
@@ -192,9 +192,7 @@ def test_written_scene_keeps_ncrystal_and_band(tmp_path):
     """The fitted-scene writer keeps the layer's cfg and the band: the scene reads back with
     the same SLD, mu(lambda) and spectra."""
     scene = load_scene(_scene(tmp_path, AL + ";temp=200K"))
-    again_path = tmp_path / "again.toml"
-    again_path.write_text(scene_toml(scene, tmp_path))
-    again = load_scene(again_path)
+    again = load_scene(save_scene(scene, tmp_path / "again.toml"))
     assert again.spectra["white"] == scene.spectra["white"]
     layer, other = scene.sample.layers[0], again.sample.layers[0]
     assert other.material.ncrystal_cfg == AL + ";temp=200K"

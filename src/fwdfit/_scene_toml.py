@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Collection
 from pathlib import Path
 
@@ -77,15 +78,15 @@ def _tables(scene: Scene, folder: Path | None) -> list[_Table]:
     for name, inst in scene.instruments.items():
         entries = [(key, getattr(inst, key)) for key in
                    ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel")]
-        tables.append(("[instrument]" if name == "" else f"[instruments.{_value(name)}]", "instrument",
+        tables.append(("[instrument]" if name == "" else f"[instruments.{_key(name)}]", "instrument",
                        _changed(entries, {"psf_fwhm_um": 0.0, "fresnel": False})))
     for name, spectrum in scene.spectra.items():
-        tables.append((f"[spectra.{_value(name)}]", "spectra", _spectrum(name, spectrum, path)))
+        tables.append((f"[spectra.{_key(name)}]", "spectra", _spectrum(name, spectrum, path)))
     tables += [("[[profiles]]", "profiles", _profile(index, p, scene, path))
                for index, p in enumerate(scene.profiles)]
     fit = scene.fit
     entries = _changed([("vary", list(fit.vary)), ("per_row", list(fit.per_row))], {"vary": [], "per_row": []})
-    entries += [(f"bounds.{_value(name)}", list(pair)) for name, pair in fit.bounds.items()]
+    entries += [(f"bounds.{_key(name)}", list(pair)) for name, pair in fit.bounds.items()]
     if entries:
         tables.append(("[fit]", "fit", entries))
     if scene.accuracy != DEFAULT_ACCURACY:
@@ -99,9 +100,9 @@ def _changed(entries: list[tuple[str, object]], defaults: dict) -> list[tuple[st
 
 
 def _layer(layer: Layer) -> list[tuple[str, object]]:
-    """A layer's keys: its material's source (NCrystal cfg: mu(lambda) is NCrystal's) and
-    the constants themselves, which override the material's; NaN (a start left to the
-    fit) is left out."""
+    """A layer's keys: its material's source (formula and density, or NCrystal cfg) and
+    the constants that differ from the material's (they override it); NaN (a start left
+    to the fit) is left out."""
     if layer.same_as:
         return [("name", layer.name), ("same_as", layer.same_as)]
     entries: list[tuple[str, object]] = [("name", layer.name)]
@@ -110,9 +111,16 @@ def _layer(layer: Layer) -> list[tuple[str, object]]:
         entries.append(("ncrystal", material.ncrystal_cfg))
     elif material is not None and material.formula:
         entries += [("material", material.formula), ("density_g_cm3", material.density_g_cm3)]
-    entries += [(key, getattr(layer, key)) for key in
-                ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")
-                if not math.isnan(getattr(layer, key))]
+    else:
+        material = None
+    constants = [(key, getattr(layer, key)) for key in ("sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")]
+    if material is not None:  # the reader's defaults: the material's (mu_per_m_per_A: 0 beside a mu_per_m)
+        constants = _changed(constants[:2], {"sld_e6_per_A2": material.sld_e6_per_A2,
+                                             "mu_per_m": material.mu_per_m}) + constants[2:]
+        if not any(key == "mu_per_m" for key, _ in constants):
+            constants = _changed(constants, {"mu_per_m_per_A": material.mu_per_m_per_A})
+    entries += [(key, value) for key, value in [("thickness_um", layer.thickness_um), *constants]
+                if not math.isnan(value)]
     return entries + _changed([("density_scale", layer.density_scale)], {"density_scale": 1.0})
 
 
@@ -166,6 +174,11 @@ def _grid_start(x_um: np.ndarray, pixel_um: float, where: str) -> float:
         return start
     raise FwdfitError(f"{where}: x_um is not a grid of pixel_um = {pixel_um:g} and the profile "
                       "has no file: a scene cannot hold it")
+
+
+def _key(name: str) -> str:
+    """A TOML key: bare where it may be, else quoted."""
+    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else _value(name)
 
 
 def _value(value) -> str:
