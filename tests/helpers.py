@@ -1,4 +1,4 @@
-"""Test helpers: reference tables, scene files written on the fly, edge metrics, exact
+"""Test helpers: reference tables, scenes built on the fly, edge metrics, exact
 straight-ray Beer-Lambert profiles and central differences.
 
 Everything here is NumPy (or plain JAX calls of the public API) and independent of the
@@ -140,59 +140,61 @@ def scene_differences(a, b, where: str = "scene") -> list[str]:
     return [] if type(a) is type(b) and a == b else [f"{where}: {a!r} != {b!r}"]
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, (int, float)):
-        return repr(float(value)) if isinstance(value, float) else str(value)
-    raise TypeError(f"no TOML for {value!r}")
-
-
-def scene_text(layers, *, profiles, spectrum, depth_mm=2.0, tilt_deg=0.0, centre_um=0.0,
+def make_scene(layers, *, profiles, spectrum, depth_mm=2.0, tilt_deg=0.0, centre_um=0.0,
                aperture="square", aperture_mm=40.0, aperture_distance_m=7.5, pixel_um=2.4,
-               psf_fwhm_um=0.0) -> str:
-    """A scene file with one instrument and one spectrum named ``s``.
+               psf_fwhm_um=0.0, fresnel=False, vary=()):
+    """A ``Scene`` value with one instrument and one spectrum named ``s``.
 
-    layers: list of dicts of layer keys; profiles: list of (name, distance_mm, x_min_um,
-    x_max_um); spectrum: dict of spectrum keys (``file`` may be an absolute path).
+    layers: ``Layer`` values; profiles: list of (name, distance_mm, x_min_um, x_max_um);
+    spectrum: a spectrum value (``white_beam()``, ``GaussianLine``).
     """
-    lines = ["[sample]", f"depth_mm = {_toml_value(float(depth_mm))}",
-             f"tilt_deg = {_toml_value(float(tilt_deg))}",
-             f"centre_um = {_toml_value(float(centre_um))}", ""]
-    for layer in layers:
-        lines.append("[[sample.layers]]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in layer.items()]
-        lines.append("")
-    lines += ["[instrument]", f'aperture = "{aperture}"',
-              f"aperture_mm = {_toml_value(float(aperture_mm))}",
-              f"aperture_distance_m = {_toml_value(float(aperture_distance_m))}",
-              f"pixel_um = {_toml_value(float(pixel_um))}",
-              f"psf_fwhm_um = {_toml_value(float(psf_fwhm_um))}", "fresnel = false", "",
-              "[spectra.s]"]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in spectrum.items()]
-    lines.append("")
-    for name, distance_mm, x_min_um, x_max_um in profiles:
-        lines += ["[[profiles]]", f'name = "{name}"',
-                  f"distance_mm = {_toml_value(float(distance_mm))}", 'spectrum = "s"',
-                  f"x_min_um = {_toml_value(float(x_min_um))}",
-                  f"x_max_um = {_toml_value(float(x_max_um))}", ""]
-    return "\n".join(lines)
+    import fwdfit
+
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=depth_mm, tilt_deg=tilt_deg, centre_um=centre_um, layers=tuple(layers)),
+        instruments={"": fwdfit.Instrument(aperture, aperture_mm, aperture_distance_m, pixel_um,
+                                           psf_fwhm_um=psf_fwhm_um, fresnel=fresnel)},
+        spectra={"s": spectrum},
+        profiles=tuple(fwdfit.Profile(name, distance_mm, "s", "", fwdfit.pixel_grid(x_min, x_max, pixel_um))
+                       for name, distance_mm, x_min, x_max in profiles),
+        fit=fwdfit.FitSpec(tuple(vary)))
 
 
 def write_scene(folder: Path, *args, name: str = "scene.toml", **kwargs):
-    """Write ``scene_text(*args, **kwargs)`` to ``folder/name`` and load it."""
-    from fwdfit import load_scene
+    """Save ``make_scene(*args, **kwargs)`` as ``folder/name`` and load it (validated)."""
+    import fwdfit
 
-    path = Path(folder) / name
-    path.write_text(scene_text(*args, **kwargs))
-    return load_scene(path)
+    return fwdfit.load_scene(fwdfit.save_scene(make_scene(*args, **kwargs), Path(folder) / name))
 
 
-def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0) -> dict:
-    return {"name": name, "thickness_um": float(thickness_um), "sld_e6_per_A2": float(sld),
-            "mu_per_m": float(mu), "mu_per_m_per_A": float(mu_per_A)}
+def small_scene(values: dict, *, file: Path | None = None, vary=(), bounds=None):
+    """One Al block (mu = 9.06 + 0.774 lambda /m), the ICON 4.6 Å line (circular 40 mm
+    aperture at 5.5 m), one profile ``line`` at 1.1 mm over +-600 µm, read from ``file`` if
+    given. ``values``: ``sample.centre_um``, ``layers.Al.thickness_um``,
+    ``layers.Al.sld_e6_per_A2``."""
+    import fwdfit
+
+    layer = fwdfit.Layer("Al", values["layers.Al.thickness_um"], values["layers.Al.sld_e6_per_A2"], 9.06, 0.774)
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.0, centre_um=values["sample.centre_um"], layers=(layer,)),
+        instruments={"": fwdfit.Instrument("circular", 40.0, 5.5, 2.4)},
+        spectra={"l46": fwdfit.GaussianLine(4.6, 0.15)},
+        profiles=(fwdfit.Profile("line", 1.1, "l46", "", fwdfit.pixel_grid(-600.0, 600.0, 2.4), file=file),),
+        fit=fwdfit.FitSpec(tuple(vary), dict(bounds or {})))
+
+
+def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0):
+    import fwdfit
+
+    return fwdfit.Layer(name, float(thickness_um), float(sld), float(mu), float(mu_per_A))
+
+
+def white_beam():
+    """The BOA white-beam table as a spectrum value (its file kept for writing scenes)."""
+    import fwdfit
+
+    lam, weight = boa_spectrum()
+    return fwdfit.TabulatedSpectrum(lam, weight, BOA_SPECTRUM)
 
 
 def boa_spectrum() -> tuple[np.ndarray, np.ndarray]:
@@ -326,9 +328,8 @@ def replace_params(params, **changes):
 # --------------------------------------------------------------------------- shared scenes
 
 
-def oxide_layer(name, thickness_um, sld, mu, mu_per_A=0.3) -> dict:
-    return {"name": name, "thickness_um": float(thickness_um), "sld_e6_per_A2": float(sld),
-            "mu_per_m": float(mu), "mu_per_m_per_A": float(mu_per_A)}
+def oxide_layer(name, thickness_um, sld, mu, mu_per_A=0.3):
+    return al_layer(name, thickness_um, sld, mu, mu_per_A)
 
 
 STACK_LAYERS = [oxide_layer("ox2_left", 80.0, 3.518, 12.0), oxide_layer("ox1_left", 160.0, 3.304, 24.0),
@@ -346,7 +347,7 @@ def stack_scene(folder: Path):
     """
     return write_scene(folder, STACK_LAYERS, name="stack.toml", tilt_deg=0.5,
                        profiles=[("d34.4mm", 34.4, -1300.0, 1300.0)],
-                       spectrum={"file": str(BOA_SPECTRUM)})
+                       spectrum=white_beam())
 
 
 def free_layer_parameters(scene) -> list[str]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 
@@ -40,14 +39,14 @@ def test_scene_built_in_python_round_trips(tmp_path):
     pixel_um = 2.4
     scene = fwdfit.Scene(
         sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.24, centre_um=-3.3, drift_um_per_mm=0.01,
-                             layers=(oxide, al, dataclasses.replace(oxide, name="o2", same_as="oxide"))),
+                             layers=(oxide, al, oxide.tied("o2"))),
         instruments={"": fwdfit.Instrument("circular", 20.0, 5.5, pixel_um, psf_fwhm_um=3.0, fresnel=True),
                      'ICON "2"': fwdfit.Instrument("square", 40.0, 7.5, 13.5)},
         spectra={"line": fwdfit.GaussianLine(4.6, 0.1), "white": white,
                  "band": fwdfit.BandSpectrum(2.0, 3.0, white), "flat": fwdfit.BandSpectrum(1.0, 5.0, None)},
-        profiles=(fwdfit.Profile("a", 10.0, "line", "", fwdfit.pixel_grid(-600.1, 500, pixel_um),
+        profiles=(fwdfit.Profile("a", 10.0, "line", "", fwdfit.pixel_grid(-600.1, 600.0, pixel_um),
                                  shift_um=1.5, norm=0.99, background=0.01),
-                  fwdfit.Profile("b\u00e9", 34.4, "band", 'ICON "2"', fwdfit.pixel_grid(-0.3, 77, 13.5))),
+                  fwdfit.Profile("b\u00e9", 34.4, "band", 'ICON "2"', fwdfit.pixel_grid(-0.3, 1000.0, 13.5))),
         fit=fwdfit.FitSpec(vary=("layers.oxide.thickness_um", "sample.tilt_deg"),
                            bounds={"sample.tilt_deg": (-1.0, 1.0)}),
         accuracy=3e-4)

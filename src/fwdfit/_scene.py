@@ -52,6 +52,10 @@ class Layer:
         return cls(name, thickness_um, material.sld_e6_per_A2, material.mu_per_m,
                    material.mu_per_m_per_A, material=material, density_scale=density_scale)
 
+    def tied(self, name: str) -> Layer:
+        """A layer named ``name`` tied to this one (``same_as``): every value shared."""
+        return dataclasses.replace(self, name=name, same_as=self.same_as or self.name)
+
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
@@ -102,10 +106,16 @@ class Profile:
     image_err_file: Path | None = None
 
 
-def pixel_grid(x_min_um: float, n_pixels: int, pixel_um: float) -> np.ndarray:
-    """Centres (n_pixels,) of pixels of ``pixel_um`` starting at ``x_min_um``, as a scene's
-    ``x_min_um``/``x_max_um`` or an image's ``x0_um`` gives them."""
-    return x_min_um + (np.arange(n_pixels) + 0.5) * pixel_um
+def pixel_count(x_min_um: float, x_max_um: float, pixel_um: float) -> int:
+    """How many whole pixels of ``pixel_um`` fit from ``x_min_um`` to ``x_max_um``."""
+    return int(math.floor((x_max_um - x_min_um) / pixel_um + 1e-6))
+
+
+def pixel_grid(x_min_um: float, x_max_um: float, pixel_um: float) -> np.ndarray:
+    """Centres (n,) of the whole pixels of ``pixel_um`` from ``x_min_um`` to ``x_max_um``:
+    a profile's ``x_um`` as a scene's ``x_min_um``/``x_max_um`` (or an image's ``x0_um``
+    and width) give it."""
+    return x_min_um + (np.arange(max(pixel_count(x_min_um, x_max_um, pixel_um), 0)) + 0.5) * pixel_um
 
 
 @dataclasses.dataclass(frozen=True)
@@ -294,8 +304,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         tied = next((layer for layer in earlier if layer.name == target), None)
         if tied is None:
             reader.fail(reader.key("same_as"), f"names no earlier layer: {target!r}")
-        root = tied.same_as or tied.name
-        return dataclasses.replace(tied, name=name, same_as=root)
+        return tied.tied(name)
     material = None
     if reader.has("material") or reader.has("ncrystal"):
         material = _material(reader)
@@ -424,7 +433,8 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             image_file = path.parent / reader.string("image")
             err_file = path.parent / reader.string("image_err") if reader.has("image_err") else None
             image, image_err = read_image(reader, image_file, err_file)
-            x_um = pixel_grid(reader.number("x0_um", 0.0), image.shape[1], pixel_um)
+            x0_um = reader.number("x0_um", 0.0)
+            x_um = pixel_grid(x0_um, x0_um + image.shape[1] * pixel_um, pixel_um)
         elif reader.has("file"):
             file = path.parent / reader.string("file")
             columns = read_columns(file, ["x_um", "T"], ["T_err"])
@@ -439,13 +449,13 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                 check_domain_rows(column, values, f"{path}: {reader.key('file')}: {file}: {column}")
         else:
             x_min, x_max = reader.number("x_min_um"), reader.number("x_max_um")
-            n_pixels = int(math.floor((x_max - x_min) / pixel_um + 1e-6))
+            n_pixels = pixel_count(x_min, x_max, pixel_um)
             if n_pixels < 2:
                 reader.fail(reader.key("x_max_um"), "the pixel grid needs x_max_um > x_min_um + 2 pixels")
             if n_pixels > MAX_PIXELS:
                 reader.fail(reader.key("x_max_um"),
                             f"the pixel grid has {n_pixels} pixels, more than {MAX_PIXELS} ({SEE})")
-            x_um = pixel_grid(x_min, n_pixels, pixel_um)
+            x_um = pixel_grid(x_min, x_max, pixel_um)
         profiles.append(Profile(
             name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
             shift_um=reader.number("shift_um", 0.0), norm=reader.number("norm", 1.0, positive=True),

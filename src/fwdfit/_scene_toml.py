@@ -168,9 +168,10 @@ def _grid_start(x_um: np.ndarray, pixel_um: float, where: str) -> float:
         up, down = float(np.nextafter(up, math.inf)), float(np.nextafter(down, -math.inf))
         candidates += [up, down]
     for candidate in candidates:
-        if np.array_equal(pixel_grid(candidate, len(x_um), pixel_um), x_um):
+        if np.array_equal(pixel_grid(candidate, candidate + len(x_um) * pixel_um, pixel_um), x_um):
             return candidate
-    if np.allclose(pixel_grid(start, len(x_um), pixel_um), x_um, rtol=0.0, atol=1e-9 * pixel_um):
+    grid = pixel_grid(start, start + len(x_um) * pixel_um, pixel_um)
+    if grid.shape == x_um.shape and np.allclose(grid, x_um, rtol=0.0, atol=1e-9 * pixel_um):
         return start
     raise FwdfitError(f"{where}: x_um is not a grid of pixel_um = {pixel_um:g} and the profile "
                       "has no file: a scene cannot hold it")
