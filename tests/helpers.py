@@ -183,6 +183,25 @@ def small_scene(values: dict, *, file: Path | None = None, vary=(), bounds=None)
         fit=fwdfit.FitSpec(tuple(vary), dict(bounds or {})))
 
 
+IMAGE_VARY = ("sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um", "layers.Al.sld_e6_per_A2",
+              "layers.Al.mu_per_m")
+
+
+def image_scene(image_file: Path, *, thickness_um: float, x0_um: float, n_cols: int, pixel_um: float = 2.4,
+                image_err_file: Path | None = None, per_row=()):
+    """An Al block (2.70 g/cm3, start tilt 0.15°) at 8.5 mm, the ICON 2.7 Å line, one
+    image profile ``radiograph`` of ``n_cols`` columns from ``x0_um``; ``IMAGE_VARY`` free."""
+    import fwdfit
+
+    profile = fwdfit.Profile("radiograph", 8.5, "l27", "", fwdfit.pixel_grid(x0_um, x0_um + n_cols * pixel_um, pixel_um),
+                             image_file=image_file, image_err_file=image_err_file)
+    layer = fwdfit.Layer.from_material("Al", thickness_um, fwdfit.constants_from_formula("Al", 2.70))
+    return fwdfit.Scene(fwdfit.Sample(depth_mm=2.0, tilt_deg=0.15, centre_um=0.0, layers=(layer,)),
+                        {"": fwdfit.Instrument("circular", 40.0, 5.5, pixel_um)},
+                        {"l27": fwdfit.GaussianLine(2.7, 0.15)}, (profile,),
+                        fwdfit.FitSpec(IMAGE_VARY, per_row=tuple(per_row)))
+
+
 def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0):
     import fwdfit
 

@@ -6,6 +6,7 @@ Fast: no fit of a whole scene here (those are in test_fit.py and test_fit_starts
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import subprocess
@@ -22,6 +23,7 @@ from fwdfit._least_squares import levenberg_marquardt
 from fwdfit._predict import _COMPILED
 from fwdfit._quality import assess, runs_z
 from fwdfit._starts import _attenuation, _refraction_edges, outer_edges, segment
+from helpers import small_scene
 
 PIXEL_UM = 2.4
 
@@ -207,38 +209,19 @@ def test_cache_dir_from_the_environment(monkeypatch, tmp_path):
     assert cache_dir() == tmp_path / "xdg" / "fwdfit"
 
 
-SCENE_WITHOUT_STARTS = """
-[sample]
-depth_mm = 2.0
-
-[[sample.layers]]
-name = "Al"
-sld_e6_per_A2 = 2.078
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.l46]
-wavelength_A = 4.6
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "line"
-distance_mm = 1.1
-spectrum = "l46"
-x_min_um = -600.0
-x_max_um = 600.0
-"""
+def _scene_without_starts(path: Path, vary) -> Path:
+    """The small Al scene with thickness_um and mu_per_m left out (NaN), ``vary`` free."""
+    scene = small_scene({"sample.centre_um": 0.0, "layers.Al.thickness_um": math.nan,
+                         "layers.Al.sld_e6_per_A2": 2.078}, vary=vary)
+    layer = dataclasses.replace(scene.sample.layers[0], mu_per_m=math.nan)
+    return fwdfit.save_scene(dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, layers=(layer,))),
+                             path)
 
 
 def test_free_values_may_have_no_start(tmp_path, capsys):
     """thickness_um and mu_per_m left out: allowed when [fit] vary names them (NaN: the fit
     estimates them), refused by simulate with one line, and refused when not varied."""
-    path = tmp_path / "scene.toml"
-    path.write_text(SCENE_WITHOUT_STARTS + '[fit]\nvary = ["layers.Al.thickness_um", "layers.Al.mu_per_m"]\n')
+    path = _scene_without_starts(tmp_path / "scene.toml", ["layers.Al.thickness_um", "layers.Al.mu_per_m"])
     layer = fwdfit.load_scene(path).sample.layers[0]
     assert math.isnan(layer.thickness_um) and math.isnan(layer.mu_per_m)
     assert layer.sld_e6_per_A2 == 2.078
@@ -248,21 +231,18 @@ def test_free_values_may_have_no_start(tmp_path, capsys):
     line = capsys.readouterr().err.strip()
     assert line.startswith("fwdfit: error:") and "thickness_um is missing" in line, line
     assert not (tmp_path / "out").exists()
-    path.write_text(SCENE_WITHOUT_STARTS + '[fit]\nvary = ["layers.Al.mu_per_m"]\n')
+    _scene_without_starts(path, ["layers.Al.mu_per_m"])
     with pytest.raises(fwdfit.FwdfitError, match="thickness_um: missing"):
         fwdfit.load_scene(path)
 
 
-def _open_beam_line_scene(tmp_path, extra: str = "") -> Path:
-    """A one-profile Al scene on a 500-pixel open-beam line, its thickness free; ``extra``
-    appended (TOML)."""
-    path = tmp_path / "scene.toml"
-    rows = np.column_stack([-600 + (np.arange(500) + 0.5) * PIXEL_UM, np.ones(500), np.full(500, 0.01)])
+def _open_beam_line_scene(tmp_path, accuracy: float = fwdfit.Scene.accuracy) -> Path:
+    """A one-profile Al scene on a 500-pixel open-beam line, its thickness free."""
+    rows = np.column_stack([fwdfit.pixel_grid(-600.0, 600.0, PIXEL_UM), np.ones(500), np.full(500, 0.01)])
     np.savetxt(tmp_path / "line.csv", rows, delimiter=",", header="x_um,T,T_err", comments="")
-    path.write_text(SCENE_WITHOUT_STARTS.replace('x_min_um = -600.0\nx_max_um = 600.0', 'file = "line.csv"')
-                    .replace('sld_e6_per_A2 = 2.078', 'sld_e6_per_A2 = 2.078\nthickness_um = 1000.0\nmu_per_m = 9.0')
-                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n' + extra)
-    return path
+    scene = small_scene({"sample.centre_um": 0.0, "layers.Al.thickness_um": 1000.0, "layers.Al.sld_e6_per_A2": 2.078},
+                        file=tmp_path / "line.csv", vary=["layers.Al.thickness_um"])
+    return fwdfit.save_scene(dataclasses.replace(scene, accuracy=accuracy), tmp_path / "scene.toml")
 
 
 def test_compiled_model_is_kept_between_runs(tmp_path):
@@ -309,7 +289,7 @@ def test_rows_are_sharded_across_devices(tmp_path):
     """On two devices (two host devices forced, as on a machine with two accelerators) a
     call's rows are split between them (rows per call rounded up to a multiple of 2) and
     the predictions equal the one-device program's to rounding."""
-    path = _open_beam_line_scene(tmp_path, '[model]\naccuracy = 0.01\n')
+    path = _open_beam_line_scene(tmp_path, accuracy=0.01)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
                FWDFIT_CACHE_DIR="off")
     done = subprocess.run([sys.executable, "-c", _SHARDED_PROBE, str(path)], env=env, capture_output=True,
