@@ -33,34 +33,12 @@ REPOSITORY = Path(__file__).resolve().parents[1]  # the checkout, whether fwdfit
 SRC = REPOSITORY / "src" / "fwdfit"
 PYPROJECT = REPOSITORY / "pyproject.toml"
 
-SCENE = """\
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.24
-
-[[sample.layers]]
-name = "Al"
-thickness_um = 60.0
-sld_e6_per_A2 = 2.078
-mu_per_m = 1.39
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.line]
-wavelength_A = 2.7
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "near"
-distance_mm = 1.1
-spectrum = "line"
-x_min_um = -48.0
-x_max_um = 48.0
-"""
+SCENE = fwdfit.dump_scene(fwdfit.Scene(
+    sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.24, centre_um=0.0,
+                         layers=(fwdfit.Layer("Al", 60.0, 2.078, 1.39),)),
+    instruments={"": fwdfit.Instrument("circular", 40.0, 5.5, 2.4)},
+    spectra={"line": fwdfit.GaussianLine(2.7, 0.15)},
+    profiles=(fwdfit.Profile("near", 1.1, "line", "", fwdfit.pixel_grid(-48.0, 48.0, 2.4)),)))
 
 
 def _edit(text: str, old: str, new: str) -> str:
