@@ -61,7 +61,7 @@ def make_series(folder: Path, n_images: int, n_rows: int) -> list[Path]:
 
 
 def _timed_run(scene: Path, images, out: Path, workers: int) -> float:
-    from fwdfit._image_series import fit_series
+    from fwdfit.images import fit_series
 
     begin = time.perf_counter()
     lines = fit_series(scene, images, out, workers=workers)

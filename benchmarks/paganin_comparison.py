@@ -44,9 +44,9 @@ import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
 from fwdfit import load_scene, simulate  # noqa: E402
-from fwdfit._paganin import paganin_filter_1d  # noqa: E402
-from fwdfit._paganin_scene import paganin_layer, paganin_profiles, profile_tau_um2  # noqa: E402
-from fwdfit._tables import read_columns, write_columns  # noqa: E402
+from fwdfit.paganin import paganin_filter_1d  # noqa: E402
+from fwdfit.paganin import paganin_layer, paganin_profiles, profile_tau_um2  # noqa: E402
+from fwdfit.scene import read_columns, write_columns  # noqa: E402
 from _results import results_dir  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 import fwdfit
-from fwdfit._cache import cache_dir
-from fwdfit._least_squares import levenberg_marquardt
-from fwdfit._predict import _COMPILED
-from fwdfit._quality import assess, runs_z
-from fwdfit._starts import _attenuation, _refraction_edges, outer_edges, segment
+from fwdfit.inference import cache_dir
+from fwdfit.inference import levenberg_marquardt
+from fwdfit.inference import forget_compiled
+from fwdfit.inference import assess, runs_z
+from fwdfit.inference import attenuation_from_plateau, outer_edges, refraction_edges, segment
 from helpers import small_scene
 
 PIXEL_UM = 2.4
@@ -70,7 +70,7 @@ def test_outer_edges_of_a_transparent_block_from_its_refraction_spikes():
         T[(outward * (x - edge) > 0) & (outward * (x - edge) < 5)] += 0.2
         T[(outward * (edge - x) > 0) & (outward * (edge - x) < 5)] -= 0.2
     assert outer_edges(x, T, blur_um=8.0, pixel_um=PIXEL_UM) is None  # no plateau to see
-    found_left, found_right, _ = _refraction_edges(x, T, 1.0, 0.005)
+    found_left, found_right, _ = refraction_edges(x, T, 1.0, 0.005)
     assert found_left == pytest.approx(left, abs=PIXEL_UM)
     assert found_right == pytest.approx(right, abs=PIXEL_UM)
 
@@ -87,7 +87,7 @@ def test_attenuation_inverts_the_spectrum_average():
     offsets = np.array([1.0, 2.5, 4.0])  # 1/m, e.g. 1/v absorption at three wavelengths
     for mu in (0.5, 9.06, 150.0):
         plateau = float(np.sum(weight * np.exp(-(mu + offsets) * 2e-3)))
-        assert _attenuation(plateau, weight, 2000.0, offsets) == pytest.approx(mu, rel=1e-9)
+        assert attenuation_from_plateau(plateau, weight, 2000.0, offsets) == pytest.approx(mu, rel=1e-9)
 
 
 # --------------------------------------------------------------------------- solver
@@ -252,11 +252,11 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
     before = jax.config.jax_compilation_cache_dir
     try:
         fwdfit.enable_compilation_cache(tmp_path / "cache")
-        _COMPILED.clear()  # this process's compiled programs: the second Fitter must load the stored one
+        forget_compiled()  # this process's compiled programs: the second Fitter must load the stored one
         first = fwdfit.Fitter(path)
         stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.jaxexport"))
         assert len(stored) == 1
-        _COMPILED.clear()
+        forget_compiled()
         second = fwdfit.Fitter(path)
         values = np.array([[990.0], [1010.0]])
         np.testing.assert_array_equal(first.predict(values)[0], second.predict(values)[0])
@@ -273,7 +273,7 @@ _SHARDED_PROBE = """
 import sys, jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 import fwdfit
-from fwdfit._predict import Predictor
+from fwdfit.inference import Predictor
 fitter = fwdfit.Fitter(sys.argv[1])
 values = np.array([[990.0], [995.0], [1000.0], [1005.0], [1010.0]])
 single = fitter.predict(values)

@@ -35,9 +35,9 @@ import pytest
 import tomllib
 
 import fwdfit
-from fwdfit._aperture import APERTURES
-from fwdfit._kernel import AngularMass, fresnel_transfer
-from fwdfit._plan import fresnel_nodes
+from fwdfit.model import APERTURES
+from fwdfit.model import AngularMass, fresnel_transfer
+from fwdfit.model import fresnel_nodes
 from fwdfit.cli import main
 from helpers import (DATA, al_layer, load_reference, random_weights, replace_params,
                      rms, weighted_value, weighted_value_and_grad, write_scene)

@@ -1,7 +1,7 @@
 """Fuzz: every scene ends in a right answer or in one clear line.
 
 Scenes are drawn over the whole validity domain of every key (docs/SCENE.md,
-``fwdfit._limits.DOMAIN``), then some are broken at one place: a value outside the
+``fwdfit.scene.DOMAIN``), then some are broken at one place: a value outside the
 domain (NaN and infinities included), a wrong type, a missing or an unknown key, a
 wrong name or reference, a broken spectrum table. Each is written as TOML and run
 through ``fwdfit.cli.main(["simulate", scene, "--out", dir])`` in-process. It must end
@@ -36,7 +36,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fwdfit._limits import DOMAIN
+from fwdfit.scene import DOMAIN
 from fwdfit.cli import main
 
 N_PIXELS = 8

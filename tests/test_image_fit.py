@@ -25,7 +25,7 @@ import pytest
 import tifffile
 
 import fwdfit
-from fwdfit._least_squares import levenberg_marquardt
+from fwdfit.inference import levenberg_marquardt
 from fwdfit.cli import main
 from helpers import gaussian_line_table, image_scene, read_table, rms
 
@@ -175,7 +175,7 @@ def test_edge_centres_find_rows_and_flag_the_rest(tmp_path):
     an open-beam row has no edge (flag 1), a mostly masked row is flagged 2, and a row
     whose edges are 300 µm closer than the others' gets no centre (fitted from its
     neighbours) and no flag."""
-    from fwdfit._image_fit import FLAG_MASKED, FLAG_NO_EDGE, edge_centres
+    from fwdfit.images import FLAG_MASKED, FLAG_NO_EDGE, edge_centres
 
     x = X0_UM + PIXEL_UM * (np.arange(N_COLS) + 0.5)
     rng = np.random.default_rng(2)
@@ -290,9 +290,9 @@ def test_fit_image_fits_a_norm_per_row(tmp_path):
     """The open beam's level changes by 2 % across the rows (norm per row, fit.per_row):
     each row's norm within 3 sigma and 0.002 of the truth, its centre within 1 µm. The
     image is the model itself at accuracy 1e-4 (the fit runs at 1e-3), 1 % noise."""
-    from fwdfit._parameters import assembler, free_parameters
-    from fwdfit._plan import build_model
-    from fwdfit._predict import Predictor
+    from fwdfit.inference import assembler, free_parameters
+    from fwdfit.model import build_model
+    from fwdfit.inference import Predictor
 
     n_rows = 24
     tifffile.imwrite(tmp_path / "T.tif", np.ones((n_rows, N_COLS), np.float32))

@@ -24,7 +24,7 @@ import pytest
 import tifffile
 
 import fwdfit
-from fwdfit._image_series import OUTPUT_FILES
+from fwdfit.images import OUTPUT_FILES
 from fwdfit.cli import main
 from helpers import gaussian_line_table, image_scene
 
@@ -193,9 +193,9 @@ def test_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys):
 
 
 def test_a_cluster_without_dask_installed_is_a_one_line_error(monkeypatch):
-    from fwdfit._errors import FwdfitError
-    from fwdfit._image_series import _local_client
+    from fwdfit import FwdfitError
+    from fwdfit.images import local_client
 
     monkeypatch.setitem(__import__("sys").modules, "distributed", None)
     with pytest.raises(FwdfitError, match=r"pip install 'fwdfit\[cluster\]'"):
-        _local_client(None, 2)
+        local_client(None, 2)

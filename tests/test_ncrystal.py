@@ -15,10 +15,11 @@ NCrystal = pytest.importorskip("NCrystal")
 
 import fwdfit  # noqa: E402
 from fwdfit import save_scene  # noqa: E402
-from fwdfit._plan import build_model  # noqa: E402
-from fwdfit._reference import ReferenceLayer, trace_reference  # noqa: E402
-from fwdfit._scene import load_scene  # noqa: E402
-from fwdfit._spectrum import BandSpectrum, wavelength_quadrature  # noqa: E402
+from fwdfit.model import build_model  # noqa: E402
+from fwdfit.reference import ReferenceLayer, trace_reference  # noqa: E402
+from fwdfit.scene import load_scene  # noqa: E402
+from fwdfit.model import wavelength_quadrature
+from fwdfit.scene import BandSpectrum  # noqa: E402
 from fwdfit.cli import main  # noqa: E402
 from helpers import read_table, rms  # noqa: E402
 

@@ -12,10 +12,10 @@ import pytest
 
 import fwdfit
 from fwdfit import load_scene, simulate
-from fwdfit._errors import FwdfitError
-from fwdfit._paganin import paganin_filter_1d
-from fwdfit._paganin_scene import paganin_layer, paganin_profiles
-from fwdfit._tables import read_columns, write_columns
+from fwdfit import FwdfitError
+from fwdfit.paganin import paganin_filter_1d
+from fwdfit.paganin import paganin_layer, paganin_profiles
+from fwdfit.scene import read_columns, write_columns
 from fwdfit.cli import main
 
 jax.config.update("jax_enable_x64", True)

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 import fwdfit
-from fwdfit._parameters import FreeParameter
-from fwdfit._sample import _diagnostics, blackjax_module
+from fwdfit.inference import FreeParameter
+from fwdfit.inference import blackjax_module, diagnostics
 from fwdfit.cli import main
 from helpers import small_scene
 
@@ -135,9 +135,9 @@ def test_diagnostics_of_independent_and_correlated_draws():
     draws, r = rng.normal(size=(4, 2000, 2)), 0.8
     for t in range(1, draws.shape[1]):
         draws[:, t, 1] = r * draws[:, t - 1, 1] + draws[:, t, 1]
-    ess, rhat = _diagnostics(blackjax_module(), draws)
+    ess, rhat = diagnostics(blackjax_module(), draws)
     assert abs(ess[0] / 8000 - 1) < 0.3, ess  # the estimator's own scatter is ~10 %
     assert abs(ess[1] / (8000 * (1 - r) / (1 + r)) - 1) < 0.3, ess
     assert np.all(np.abs(rhat - 1) < 0.01), rhat
-    ess, rhat = _diagnostics(blackjax_module(), draws[:1, :3])
+    ess, rhat = diagnostics(blackjax_module(), draws[:1, :3])
     assert np.all(np.isnan(ess)) and np.all(np.isnan(rhat))

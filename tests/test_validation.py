@@ -3,7 +3,7 @@ nothing written; Ctrl-C in ``fwdfit: interrupted``, exit 130 and nothing written
 
 Everything runs ``fwdfit.cli.main`` in-process and fails before the model compiles (or
 replaces the model by a stub), so the file runs in seconds; only the XLA-log check starts
-a process. The validity domain is docs/SCENE.md's; its limits live in ``fwdfit._limits``.
+a process. The validity domain is docs/SCENE.md's; its limits are ``fwdfit.scene.DOMAIN``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import fwdfit
 import fwdfit._fit_output
 import fwdfit._profile_cli
 import fwdfit._simulate
-from fwdfit._limits import DOMAIN, MAX_TILT_DEG
+from fwdfit.scene import DOMAIN, MAX_TILT_DEG
 from fwdfit.cli import main
 
 REPOSITORY = Path(__file__).resolve().parents[1]  # the checkout, whether fwdfit is installed from it or not
