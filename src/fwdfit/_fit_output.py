@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._fit import FitResult
 from ._scene_toml import dump_scene
@@ -23,7 +24,7 @@ def result_dict(result: FitResult) -> dict:
     from . import __version__
 
     return {
-        "parameters": {name: {"value": float(v), "error": float(e)}
+        "parameters": {name: {"value": float(v), "error": float(e), "unit": registry.unit(name)}
                        for name, v, e in zip(result.names, result.values, result.errors)},
         "correlation": {"names": list(result.names), "matrix": np.round(result.correlation, 6).tolist()},
         "chi2": result.chi2,

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._limits import (DOMAIN, MAX_DIVERGENCE, MAX_PIXELS, MAX_PSF_PIXELS, SEE, check_domain,
                       check_domain_rows)
@@ -136,13 +137,13 @@ class Scene:
     path: Path | None = None
 
 
-_SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "drift_um_per_mm", "layers"}
-_LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
-               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as", "density_scale"}
+_SAMPLE_KEYS = {"layers", *registry.part("sample")}
+_LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *registry.part("layers")}
+_FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_data)  # a fit may leave them out
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
-_PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um",
-                 "shift_um", "norm", "background", "image", "image_err", "x0_um"}
+_PROFILE_KEYS = {"name", "spectrum", "instrument", "file", "x_min_um", "x_max_um", "image", "image_err", "x0_um",
+                 *registry.part("profiles")}
 _BAND_KEYS = ("lambda_min_A", "lambda_max_A")
 _TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
 
@@ -293,7 +294,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
     estimates from the data."""
     reader = _Reader(path, table, where, _LAYER_KEYS)
     name = reader.string("name")
-    optional = {key for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m") if f"layers.{name}.{key}" in vary}
+    optional = {key for key in _FROM_DATA if f"layers.{name}.{key}" in vary}
     if any(layer.name == name for layer in earlier):
         reader.fail(reader.key("name"), f"duplicate layer name {name!r}")
     if reader.has("same_as"):

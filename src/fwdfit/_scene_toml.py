@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._scene import DEFAULT_ACCURACY, Layer, Profile, Scene, pixel_grid
 from ._spectrum import BandSpectrum, GaussianLine, TabulatedSpectrum
@@ -72,8 +73,7 @@ def _tables(scene: Scene, folder: Path | None) -> list[_Table]:
 
     s = scene.sample
     tables: list[_Table] = [("[sample]", "sample", _changed(
-        [("depth_mm", s.depth_mm), ("tilt_deg", s.tilt_deg), ("centre_um", s.centre_um),
-         ("drift_um_per_mm", s.drift_um_per_mm)], {"tilt_deg": 0.0, "centre_um": 0.0, "drift_um_per_mm": 0.0}))]
+        [(key, getattr(s, key)) for key in registry.part("sample")], registry.defaults("sample")))]
     tables += [("[[sample.layers]]", "sample.layers", _layer(layer)) for layer in s.layers]
     for name, inst in scene.instruments.items():
         entries = [(key, getattr(inst, key)) for key in
@@ -95,8 +95,8 @@ def _tables(scene: Scene, folder: Path | None) -> list[_Table]:
 
 
 def _changed(entries: list[tuple[str, object]], defaults: dict) -> list[tuple[str, object]]:
-    """The entries whose value differs from the reader's default."""
-    return [(key, value) for key, value in entries if key not in defaults or value != defaults[key]]
+    """The entries whose value differs from the reader's default (None: no default)."""
+    return [(key, value) for key, value in entries if defaults.get(key) is None or value != defaults[key]]
 
 
 def _layer(layer: Layer) -> list[tuple[str, object]]:
@@ -113,15 +113,13 @@ def _layer(layer: Layer) -> list[tuple[str, object]]:
         entries += [("material", material.formula), ("density_g_cm3", material.density_g_cm3)]
     else:
         material = None
-    constants = [(key, getattr(layer, key)) for key in ("sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")]
+    values = [(key, getattr(layer, key)) for key in registry.part("layers")]
+    defaults = registry.defaults("layers") | {"mu_per_m_per_A": None}  # 0 only beside an explicit mu_per_m
     if material is not None:  # the reader's defaults: the material's (mu_per_m_per_A: 0 beside a mu_per_m)
-        constants = _changed(constants[:2], {"sld_e6_per_A2": material.sld_e6_per_A2,
-                                             "mu_per_m": material.mu_per_m}) + constants[2:]
-        if not any(key == "mu_per_m" for key, _ in constants):
-            constants = _changed(constants, {"mu_per_m_per_A": material.mu_per_m_per_A})
-    entries += [(key, value) for key, value in [("thickness_um", layer.thickness_um), *constants]
-                if not math.isnan(value)]
-    return entries + _changed([("density_scale", layer.density_scale)], {"density_scale": 1.0})
+        defaults |= {"sld_e6_per_A2": material.sld_e6_per_A2, "mu_per_m": material.mu_per_m}
+        if layer.mu_per_m == material.mu_per_m:
+            defaults["mu_per_m_per_A"] = material.mu_per_m_per_A
+    return entries + [(key, value) for key, value in _changed(values, defaults) if not math.isnan(value)]
 
 
 def _spectrum(name: str, spectrum, path) -> list[tuple[str, object]]:
@@ -154,8 +152,8 @@ def _profile(index: int, p: Profile, scene: Scene, path) -> list[tuple[str, obje
     else:
         x_min = _grid_start(p.x_um, pixel_um, where)
         entries += [("x_min_um", x_min), ("x_max_um", x_min + len(p.x_um) * pixel_um)]
-    return entries + _changed([("shift_um", p.shift_um), ("norm", p.norm), ("background", p.background)],
-                              {"shift_um": 0.0, "norm": 1.0, "background": 0.0})
+    return entries + _changed([(key, getattr(p, key)) for key in registry.part("profiles") if key != "distance_mm"],
+                              registry.defaults("profiles"))
 
 
 def _grid_start(x_um: np.ndarray, pixel_um: float, where: str) -> float:
