@@ -454,10 +454,7 @@ def test_plot_profile_leaves_the_backend_alone(tmp_path):
 def test_every_imported_package_is_declared():
     """Every third-party module imported at the top of a fwdfit module is a declared
     dependency (jaxtyping was imported but not declared)."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:
-        import tomli as tomllib
+    import tomllib
     project = tomllib.loads(PYPROJECT.read_text())["project"]
     declared = {req.split(";")[0].split(">")[0].split("=")[0].split("<")[0].strip().lower()
                 for req in project["dependencies"]}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +23,6 @@ from ._materials import MaterialConstants, constants_from_formula, constants_fro
 from ._spectrum import BandSpectrum, GaussianLine, Spectrum, TabulatedSpectrum
 from ._tables import read_columns
 
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
 
 DEFAULT_ACCURACY = 1e-3
 
