@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -61,6 +62,10 @@ def test_what_a_scene_cannot_hold_is_one_error(tmp_path):
                for name in scene.spectra}
     with pytest.raises(fwdfit.FwdfitError, match="came from no file"):
         fwdfit.save_scene(fwdfit.Scene(scene.sample, scene.instruments, spectra, scene.profiles), tmp_path / "s.toml")
+    assert list(tmp_path.iterdir()) == []
+    uneven = dataclasses.replace(scene.profiles[0], file=None, x_um=np.array([0.0, 1.0, 3.0]))
+    with pytest.raises(fwdfit.FwdfitError, match="not a grid of pixel_um"):
+        fwdfit.save_scene(dataclasses.replace(scene, profiles=(uneven,)), tmp_path / "s.toml")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -9,6 +9,7 @@ a process. The validity domain is docs/SCENE.md's; its limits are ``fwdfit.scene
 from __future__ import annotations
 
 import ast
+import dataclasses
 import importlib.metadata
 import os
 import stat
@@ -119,12 +120,16 @@ def test_out_of_domain_scene_is_one_line(scene, tmp_path, capsys, case):
     assert not out.exists() and leftovers(tmp_path) == []
 
 
-def test_tilt_limit_is_the_fit_bound():
-    """One constant: the domain's tilt limit is the default bound of a free tilt."""
-    import fwdfit._plan
+def test_tilt_limit_is_the_fit_bound(scene):
+    """One constant: the domain's tilt limit bounds a free tilt (widened from 1° to twice
+    a larger start, at most the limit)."""
+    from fwdfit.inference import free_parameters
 
-    assert fwdfit._plan.MAX_TILT_DEG is MAX_TILT_DEG
     assert DOMAIN["tilt_deg"] == (-MAX_TILT_DEG, MAX_TILT_DEG)
+    tilted = dataclasses.replace(fwdfit.load_scene(scene), sample=dataclasses.replace(
+        fwdfit.load_scene(scene).sample, tilt_deg=0.8 * MAX_TILT_DEG))
+    tilt, = free_parameters(tilted, vary=["sample.tilt_deg"])
+    assert (tilt.low, tilt.high) == (-MAX_TILT_DEG, MAX_TILT_DEG)
 
 
 def test_measured_counts_are_not_a_transmission(scene, tmp_path, capsys):

@@ -160,6 +160,8 @@ def _grid_start(x_um: np.ndarray, pixel_um: float, where: str) -> float:
     """The grid's left edge from which ``pixel_grid`` gives ``x_um`` back bit for bit
     (the nearest float to the centre minus half a pixel, or a neighbour a few ulps off)."""
     x_um = np.asarray(x_um, float)
+    if x_um.ndim != 1 or len(x_um) < 2:
+        raise FwdfitError(f"{where}: x_um needs at least two pixels")
     start = up = down = float(x_um[0] - 0.5 * pixel_um)
     candidates = [start]
     for _ in range(4):
