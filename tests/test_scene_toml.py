@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import fwdfit
+import fwdfit.inference
 from helpers import BOA_SPECTRUM, scene_differences
 
 ROOT = Path(__file__).parent.parent
@@ -79,3 +80,24 @@ def test_placeholders_are_commented_out():
     assert "# [sample]" in text and "# [[sample.layers]]" in text
     assert all("aperture_mm" not in table for table in [document.get("instrument", {}),
                                                           *document.get("instruments", {}).values()])
+
+
+def test_registry_defaults_are_the_scene_defaults(tmp_path):
+    """Every fitted quantity with a default in ``fwdfit.inference.QUANTITIES`` has it as its
+    dataclass default and gets it from the reader when the key is left out."""
+    parts = {"sample": fwdfit.Sample, "layers": fwdfit.Layer, "profiles": fwdfit.Profile}
+    scene = fwdfit.load_scene(fwdfit.save_scene(fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.0, centre_um=0.0, layers=(fwdfit.Layer("a", 10.0, 1.0, 1.0),)),
+        instruments={"": fwdfit.Instrument("square", 1.0, 5.0, 2.4)}, spectra={"s": fwdfit.GaussianLine(4.0, 0.1)},
+        profiles=(fwdfit.Profile("p", 5.0, "s", "", fwdfit.pixel_grid(-24.0, 24.0, 2.4)),)), tmp_path / "s.toml"))
+    read = {"sample": scene.sample, "layers": scene.sample.layers[0], "profiles": scene.profiles[0]}
+    checked = 0
+    for q in fwdfit.inference.QUANTITIES:
+        fields = {f.name: f for f in dataclasses.fields(parts[q.part])}
+        assert q.key in fields, q
+        if q.default is not None:
+            assert getattr(read[q.part], q.key) == q.default, q
+            if fields[q.key].default is not dataclasses.MISSING:
+                assert fields[q.key].default == q.default, q
+            checked += 1
+    assert checked >= 7

@@ -136,6 +136,7 @@ class Scene:
 
 _SAMPLE_KEYS = {"layers", *registry.part("sample")}
 _LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *registry.part("layers")}
+_DEFAULTS = {key: q.default for key, q in registry.BY_KEY.items() if q.default is not None}
 _FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_data)  # a fit may leave them out
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
@@ -279,10 +280,10 @@ def _sample(path: Path, table: Any, vary: tuple[str, ...]) -> Sample:
         layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers, vary))
     return Sample(
         depth_mm=reader.number("depth_mm", positive=True),
-        tilt_deg=reader.number("tilt_deg", 0.0),
-        centre_um=reader.number("centre_um", 0.0),
+        tilt_deg=reader.number("tilt_deg", _DEFAULTS["tilt_deg"]),
+        centre_um=reader.number("centre_um", _DEFAULTS["centre_um"]),
         layers=tuple(layers),
-        drift_um_per_mm=reader.number("drift_um_per_mm", 0.0),
+        drift_um_per_mm=reader.number("drift_um_per_mm", _DEFAULTS["drift_um_per_mm"]),
     )
 
 
@@ -325,7 +326,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
                                     if "mu_per_m" not in explicit else 0.0),
         material=material,
-        density_scale=reader.number("density_scale", 1.0, positive=True),
+        density_scale=reader.number("density_scale", _DEFAULTS["density_scale"], positive=True),
     )
 
 
@@ -456,8 +457,9 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             x_um = pixel_grid(x_min, x_max, pixel_um)
         profiles.append(Profile(
             name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
-            shift_um=reader.number("shift_um", 0.0), norm=reader.number("norm", 1.0, positive=True),
-            background=reader.number("background", 0.0), file=file, image=image, image_err=image_err,
+            shift_um=reader.number("shift_um", _DEFAULTS["shift_um"]),
+            norm=reader.number("norm", _DEFAULTS["norm"], positive=True),
+            background=reader.number("background", _DEFAULTS["background"]), file=file, image=image, image_err=image_err,
             image_file=image_file, image_err_file=err_file))
     return tuple(profiles)
 

@@ -1,5 +1,7 @@
 """The inference pieces behind ``fit``, for a new solver or sampler and for tests.
 
+``QUANTITIES`` declares every fitted quantity once (``Quantity``: scene part and key,
+unit, default, bounds, step, where the model takes it).
 ``free_parameters`` resolves a scene's ``[fit]`` into ``FreeParameter`` values and
 ``assembler`` maps their values to ``ModelParams``; ``Predictor`` is the one compiled
 program (T rows for free values), kept between fits (``forget_compiled`` drops this
@@ -23,6 +25,8 @@ from ._quality import Quality as Quality
 from ._quality import Region as Region
 from ._quality import assess as assess
 from ._quality import runs_z as runs_z
+from ._registry import QUANTITIES as QUANTITIES
+from ._registry import Quantity as Quantity
 from ._sample import blackjax_module as blackjax_module
 from ._sample import diagnostics as diagnostics
 from ._starts import attenuation_from_plateau as attenuation_from_plateau
