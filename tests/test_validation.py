@@ -278,9 +278,9 @@ def _unreachable(*args, **kwargs):
 def test_out_existing_file_is_refused_first(scene, tmp_path, capsys, monkeypatch, command):
     """--out naming a regular file is refused before any model work (before: after the
     whole fit, as a raw errno with a temporary folder's name)."""
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _unreachable)
-    monkeypatch.setattr("fwdfit._fit.fit", _unreachable)
-    monkeypatch.setattr("fwdfit._paganin_scene.paganin_profiles", _unreachable)
+    monkeypatch.setattr("fwdfit.simulate", _unreachable)
+    monkeypatch.setattr("fwdfit.Fitter", _unreachable)
+    monkeypatch.setattr("fwdfit.paganin.paganin_profiles", _unreachable)
     blocker = tmp_path / "result.txt"
     blocker.write_text("keep me\n")
     assert main([command, str(scene), "--out", str(blocker)]) == 1
@@ -294,7 +294,7 @@ def test_out_existing_file_is_refused_first(scene, tmp_path, capsys, monkeypatch
 @pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0,
                     reason="needs POSIX permissions that bind (root writes anywhere)")
 def test_out_in_unwritable_folder_is_refused_first(scene, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _unreachable)
+    monkeypatch.setattr("fwdfit.simulate", _unreachable)
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(0o555)
@@ -307,7 +307,7 @@ def test_out_in_unwritable_folder_is_refused_first(scene, tmp_path, capsys, monk
 
 
 def test_missing_scene_is_refused_first(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("fwdfit._fit.fit", _unreachable)
+    monkeypatch.setattr("fwdfit.Fitter", _unreachable)
     assert main(["fit", str(tmp_path / "nowhere.toml"), "--out", str(tmp_path / "out")]) == 1
     assert "nowhere.toml: file not found" in one_error_line(capsys)
 
@@ -323,7 +323,7 @@ def _fake_simulate(scene, accuracy=None):
 def test_ctrl_c_prints_one_line_and_leaves_nothing(scene, tmp_path, capsys, monkeypatch):
     """Ctrl-C while the second file is written: 'fwdfit: interrupted', exit 130, no output
     folder and no temporary files (before: a 50-line KeyboardInterrupt traceback)."""
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _fake_simulate)
+    monkeypatch.setattr("fwdfit.simulate", _fake_simulate)
     real_write = fwdfit._simulate.write_columns
     calls = []
 
@@ -343,7 +343,7 @@ def test_ctrl_c_prints_one_line_and_leaves_nothing(scene, tmp_path, capsys, monk
 @pytest.mark.parametrize("umask", [0o022, 0o027])
 def test_written_csvs_follow_the_umask(scene, tmp_path, monkeypatch, umask):
     """Result CSVs get 0666 less the umask like any file (before: 0600 from mkstemp)."""
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _fake_simulate)
+    monkeypatch.setattr("fwdfit.simulate", _fake_simulate)
     old = os.umask(umask)
     try:
         assert main(["simulate", str(scene), "--out", str(tmp_path / "out")]) == 0

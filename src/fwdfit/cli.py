@@ -66,8 +66,8 @@ def _enable_float64() -> None:
 
 
 def _run_simulate(args) -> None:
-    from ._scene import load_scene
-    from ._simulate import simulate, write_simulation
+    from . import load_scene, simulate  # looked up when run: a test may replace them
+    from ._simulate import write_simulation
 
     check_paths([args.scene], out_dir=args.out)
     _enable_float64()
@@ -78,9 +78,9 @@ def _run_simulate(args) -> None:
 
 
 def _run_paganin(args) -> None:
-    from ._paganin_scene import paganin_layer, paganin_profiles
-    from ._scene import load_scene
+    from . import load_scene
     from ._tables import write_columns
+    from .paganin import paganin_layer, paganin_profiles
 
     check_paths([args.scene], out_dir=args.out)
     scene = load_scene(args.scene)
@@ -100,10 +100,7 @@ def _run_paganin(args) -> None:
 
 
 def _run_fit(args) -> int:
-    from ._cache import enable_compilation_cache
-    from ._fit import Fitter
-    from ._fit_output import write_fit
-    from ._scene import load_scene
+    from . import Fitter, enable_compilation_cache, load_scene, write_fit
 
     check_paths([args.scene], out_dir=args.out)
     _enable_float64()
