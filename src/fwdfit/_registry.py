@@ -29,7 +29,10 @@ class Quantity:
     default: its value when the scene leaves it out (None: the scene must give it, or a
     fit that varies it estimates it from the data when ``from_data``). model:
     ``"params"``, a ``ModelParams`` field of the same name, or ``"assembler"``, applied
-    by the assembler (profile shifts, normalisation, background).
+    by the assembler (profile shifts, normalisation, background). positive: the scene
+    value must be > 0. material: a constant a layer's material gives (the reader and
+    writer treat it with the material); the others, neither ``from_data`` nor
+    ``material``, the reader reads as they are.
     """
 
     part: str
@@ -40,21 +43,23 @@ class Quantity:
     step: float
     model: str = "params"
     from_data: bool = False
+    positive: bool = False
+    material: bool = False
 
 
 QUANTITIES = (
     Quantity("sample", "tilt_deg", "deg", 0.0, (-DEFAULT_TILT_BOUND_DEG, DEFAULT_TILT_BOUND_DEG), 0.01),
     Quantity("sample", "centre_um", "um", 0.0, (-_INF, _INF), 1.0),
-    Quantity("sample", "depth_mm", "mm", None, (0.0, _INF), 0.01),
+    Quantity("sample", "depth_mm", "mm", None, (0.0, _INF), 0.01, positive=True),
     Quantity("sample", "drift_um_per_mm", "um/mm", 0.0, (-_INF, _INF), 0.01, model="assembler"),
     Quantity("layers", "thickness_um", "um", None, (0.0, _INF), 1.0, from_data=True),
-    Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True),
-    Quantity("layers", "mu_per_m", "1/m", None, (0.0, _INF), 1.0, from_data=True),
-    Quantity("layers", "mu_per_m_per_A", "1/(m A)", 0.0, (0.0, _INF), 0.1),
-    Quantity("layers", "density_scale", "", 1.0, (0.0, _INF), 0.01),
-    Quantity("profiles", "distance_mm", "mm", None, (0.0, _INF), 0.1),
+    Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True, material=True),
+    Quantity("layers", "mu_per_m", "1/m", None, (0.0, _INF), 1.0, from_data=True, material=True),
+    Quantity("layers", "mu_per_m_per_A", "1/(m A)", 0.0, (0.0, _INF), 0.1, material=True),
+    Quantity("layers", "density_scale", "", 1.0, (0.0, _INF), 0.01, positive=True),
+    Quantity("profiles", "distance_mm", "mm", None, (0.0, _INF), 0.1, positive=True),
     Quantity("profiles", "shift_um", "um", 0.0, (-_INF, _INF), 1.0, model="assembler"),
-    Quantity("profiles", "norm", "", 1.0, (0.0, _INF), 0.01, model="assembler"),
+    Quantity("profiles", "norm", "", 1.0, (0.0, _INF), 0.01, model="assembler", positive=True),
     Quantity("profiles", "background", "", 0.0, (-_INF, _INF), 0.001, model="assembler"),
 )
 BY_KEY = {q.key: q for q in QUANTITIES}

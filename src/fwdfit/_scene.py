@@ -136,7 +136,6 @@ class Scene:
 
 _SAMPLE_KEYS = {"layers", *registry.part("sample")}
 _LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *registry.part("layers")}
-_DEFAULTS = {key: q.default for key, q in registry.BY_KEY.items() if q.default is not None}
 _FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_data)  # a fit may leave them out
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
@@ -278,13 +277,14 @@ def _sample(path: Path, table: Any, vary: tuple[str, ...]) -> Sample:
     layers: list[Layer] = []
     for index, layer_table in enumerate(layers_table):
         layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers, vary))
-    return Sample(
-        depth_mm=reader.number("depth_mm", positive=True),
-        tilt_deg=reader.number("tilt_deg", _DEFAULTS["tilt_deg"]),
-        centre_um=reader.number("centre_um", _DEFAULTS["centre_um"]),
-        layers=tuple(layers),
-        drift_um_per_mm=reader.number("drift_um_per_mm", _DEFAULTS["drift_um_per_mm"]),
-    )
+    return Sample(layers=tuple(layers), **_plain(reader, "sample"))
+
+
+def _plain(reader: _Reader, part: str) -> dict[str, float]:
+    """A scene part's fitted quantities that are read as they are (``_registry``: neither a
+    start from the data nor a material's constant), by key."""
+    return {key: reader.number(key, q.default, positive=q.positive)
+            for key, q in registry.part(part).items() if not (q.from_data or q.material)}
 
 
 def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple[str, ...] = ()) -> Layer:
@@ -326,7 +326,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
                                     if "mu_per_m" not in explicit else 0.0),
         material=material,
-        density_scale=reader.number("density_scale", _DEFAULTS["density_scale"], positive=True),
+        **_plain(reader, "layers"),
     )
 
 
@@ -456,10 +456,8 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                             f"the pixel grid has {n_pixels} pixels, more than {MAX_PIXELS} ({SEE})")
             x_um = pixel_grid(x_min, x_max, pixel_um)
         profiles.append(Profile(
-            name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
-            shift_um=reader.number("shift_um", _DEFAULTS["shift_um"]),
-            norm=reader.number("norm", _DEFAULTS["norm"], positive=True),
-            background=reader.number("background", _DEFAULTS["background"]), file=file, image=image, image_err=image_err,
+            name=name, spectrum=spectrum, instrument=instrument, x_um=x_um, T=T, T_err=T_err,
+            **_plain(reader, "profiles"), file=file, image=image, image_err=image_err,
             image_file=image_file, image_err_file=err_file))
     return tuple(profiles)
 
