@@ -246,13 +246,12 @@ def _parser() -> argparse.ArgumentParser:
                          help="tau at the spectrum's mean wavelength (default) or averaged "
                               "over the spectrum")
     paganin.set_defaults(handler=_run_paganin)
-    fit = commands.add_parser("fit", help="fit the [fit] parameters to every measured profile at once",
-                              description="Exit status 0: a good fit; 1: bad input; 2: results "
-                                          "written but the solver did not converge; 3: results written, "
-                                          "but the data reject the fit (one line says where). Compiled "
-                                          "models are kept in FWDFIT_CACHE_DIR (default ~/.cache/fwdfit; "
-                                          "'off' disables).")
-    _add_fit_options(fit, "scene file (TOML) with measured profiles and a [fit] table")
+    fit = _fit_command(commands, "fit", "scene file (TOML) with measured profiles and a [fit] table", _run_fit,
+                       help="fit the [fit] parameters to every measured profile at once",
+                       description="Exit status 0: a good fit; 1: bad input; 2: results written but the "
+                                   "solver did not converge; 3: results written, but the data reject the "
+                                   "fit (one line says where). Compiled models are kept in "
+                                   "FWDFIT_CACHE_DIR (default ~/.cache/fwdfit; 'off' disables).")
     fit.add_argument("--starts", type=int, default=1,
                      help="N > 1 adds N - 1 random starts inside the bounds to the global scan's best "
                           "points (default 1: the scan alone)")
@@ -264,22 +263,20 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--chains", type=int, default=4, metavar="C", help="NUTS chains (default 4)")
     fit.add_argument("--warmup", type=int, default=None, metavar="W",
                      help="NUTS warm-up steps per chain (default max(300, N/2))")
-    fit.set_defaults(handler=_run_fit)
-    image = commands.add_parser(
-        "fit-image", help="fit a whole normalised image row by row (shared material, a centre per row)",
-        description="The scene's one profile names image = T.tif. Writes T_att.tif, T_corrected.tif, "
-                    "residual.tif, rows.csv, result.json and overview.png. Exit status as fwdfit fit "
-                    "(2: the shared fit did not converge; 3: more than 5 %% of the fitted rows fit poorly); "
-                    "flagged rows are named in rows.csv.")
-    _add_fit_options(image, "scene file (TOML) whose one profile is an image, with a [fit] table")
-    image.set_defaults(handler=_run_fit_image)
-    series = commands.add_parser(
-        "fit-images", help="fit many images (a tomography or time series) with one scene as template",
+    _fit_command(commands, "fit-image", "scene file (TOML) whose one profile is an image, with a [fit] table",
+                 _run_fit_image,
+                 help="fit a whole normalised image row by row (shared material, a centre per row)",
+                 description="The scene's one profile names image = T.tif. Writes T_att.tif, T_corrected.tif, "
+                             "residual.tif, rows.csv, result.json and overview.png. Exit status as fwdfit fit "
+                             "(2: the shared fit did not converge; 3: more than 5 %% of the fitted rows fit "
+                             "poorly); flagged rows are named in rows.csv.")
+    series = _fit_command(
+        commands, "fit-images", "scene file (TOML) whose one profile is an image: the template", _run_fit_images,
+        help="fit many images (a tomography or time series) with one scene as template",
         description="Each image is fitted as fit-image fits the scene's image and written to DIR/<image "
                     "name>/; images whose folder is complete are skipped (an interrupted run resumes). "
                     "DIR/summary.csv has a line per image. Exit status 0: every image fitted well; "
                     "3: an image's fit failed, did not converge or was rejected; 1: bad input.")
-    _add_fit_options(series, "scene file (TOML) whose one profile is an image: the template")
     series.add_argument("images", nargs="+", metavar="IMAGES",
                         help="TIFF files, folders of them, or globs ('proj_*.tif'), each with the template's "
                              "rows and columns")
@@ -288,7 +285,6 @@ def _parser() -> argparse.ArgumentParser:
     series.add_argument("--workers", type=int, default=None, metavar="N",
                         help="local Dask worker processes (default: the machine's cores); 1: serially in "
                              "this process, no Dask needed")
-    series.set_defaults(handler=_run_fit_images)
     add_profile_parser(commands)
     return parser
 
@@ -303,12 +299,15 @@ def _add_scene_options(command: argparse.ArgumentParser, scene_help: str, out_he
                              help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
 
 
-def _add_fit_options(command: argparse.ArgumentParser, scene_help: str) -> None:
-    """The scene, --out and the options every fit command takes."""
+def _fit_command(commands, name: str, scene_help: str, handler, **texts) -> argparse.ArgumentParser:
+    """A fit command: the scene, --out and the options every fit command takes."""
+    command = commands.add_parser(name, **texts)
     _add_scene_options(command, scene_help)
     command.add_argument("--quiet", action="store_true", help="no progress output")
     command.add_argument("--no-cache", action="store_true",
                          help="compile without the persistent compilation cache")
+    command.set_defaults(handler=handler)
+    return command
 
 
 def main(argv: list[str] | None = None) -> int:
