@@ -33,7 +33,7 @@ N_IMAGES, N_ROWS, N_COLS, PIXEL_UM, X0_UM = 8, 12, 300, 2.4, -360.0
 SHIFT_UM = 4.8  # image i is shifted by SHIFT_UM * i (two pixels: every image has the same sub-pixel pattern)
 NOISE = 0.003
 
-def _scene(folder: Path):
+def series_scene(folder: Path):
     return image_scene(folder / "proj_000.tif", thickness_um=450.0, x0_um=X0_UM, n_cols=N_COLS)
 
 
@@ -54,7 +54,7 @@ def series(tmp_path_factory):
     images = reference.T.reshape(N_IMAGES, N_ROWS, N_COLS) + noise
     for i, image in enumerate(images):
         tifffile.imwrite(folder / f"proj_{i:03d}.tif", image.astype(np.float32))
-    fwdfit.save_scene(_scene(folder), folder / "scene.toml")
+    fwdfit.save_scene(series_scene(folder), folder / "scene.toml")
     return folder, reference.centres_um.reshape(N_IMAGES, N_ROWS)
 
 
@@ -186,7 +186,7 @@ def test_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys):
     assert "--workers is for a local cluster" in _refused(
         capsys, ["fit-images", scene, image, "--out", str(out), "--workers", "2", "--scheduler", "tcp://x:1"], out)
     two = tmp_path / "two.toml"  # a scene that is not one image profile
-    two.write_text(fwdfit.dump_scene(_scene(tmp_path), tmp_path).replace(
+    two.write_text(fwdfit.dump_scene(series_scene(tmp_path), tmp_path).replace(
         'image = "proj_000.tif"\nx0_um = -360.0', 'file = "missing.csv"'))
     assert _refused(capsys, ["fit-images", str(two), image, "--out", str(out)], out)
     assert os.listdir(tmp_path) and not out.exists()
