@@ -2,7 +2,7 @@
 
 Writes 60 sample, 10 open-beam and 5 dark uint16 frames of 2048 x 2048 (single-page
 files, as the camera saves them) to a temporary folder, then runs
-``fwdfit._radiograph.profile_from_stacks`` in a fresh Python process per combination
+``fwdfit.images.profile_from_stacks`` in a fresh Python process per combination
 method and reads that process's peak resident memory (``ru_maxrss``). The frames are
 written by a process of their own: Linux carries the parent's peak into ``ru_maxrss``
 of a child it starts, so the parent stays small. Prints the results as JSON and writes
@@ -73,7 +73,7 @@ def peak_rss_mb() -> float:
 
 def run_profile(folder: Path, combine: str, size: int) -> None:
     """Run one profile in this (fresh) process and print its timing and memory as JSON."""
-    from fwdfit._radiograph import profile_from_stacks
+    from fwdfit.images import profile_from_stacks
 
     import_rss_mb = peak_rss_mb()
     start = time.perf_counter()

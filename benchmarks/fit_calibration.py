@@ -33,10 +33,8 @@ import json
 import math
 import platform
 import sys
-import tempfile
 import time
 import warnings
-from pathlib import Path
 
 import jax
 
@@ -47,7 +45,7 @@ import optimistix as optx  # noqa: E402
 
 import fwdfit  # noqa: E402
 from _results import results_dir  # noqa: E402
-from _scenes import instruments_toml  # noqa: E402
+from _scenes import instruments, spectra  # noqa: E402
 
 NOISE = 0.01
 AL = fwdfit.constants_from_formula("Al", 2.70)
@@ -67,56 +65,26 @@ START = {
 }
 
 
-def scene_text(values: dict) -> str:
-    return f"""
-[sample]
-depth_mm = 2.0
-tilt_deg = {values['sample.tilt_deg']!r}
-centre_um = {values['sample.centre_um']!r}
-
-[[sample.layers]]
-name = "Al"
-thickness_um = {values['layers.Al.thickness_um']!r}
-sld_e6_per_A2 = {values['layers.Al.sld_e6_per_A2']!r}
-mu_per_m = {values['layers.Al.mu_per_m']!r}
-mu_per_m_per_A = {AL.mu_per_m_per_A!r}
-
-{instruments_toml({'l46': 4.6})}
-[[profiles]]
-name = "boa_d01.1mm"
-distance_mm = 1.1
-spectrum = "white"
-x_min_um = -700.8
-x_max_um = 700.8
-
-[[profiles]]
-name = "boa_d08.5mm"
-distance_mm = 8.5
-spectrum = "white"
-x_min_um = -700.8
-x_max_um = 700.8
-
-[[profiles]]
-name = "icon_l4.6A"
-distance_mm = 1.1
-spectrum = "l46"
-instrument = "icon"
-x_min_um = -700.8
-x_max_um = 700.8
-
-[fit]
-vary = [{", ".join(f'"{k}"' for k in values)}]
-"""
+def scene(values: dict) -> fwdfit.Scene:
+    """The Al block at ``values`` (its free parameters), BOA at 1.1 and 8.5 mm, ICON 4.6 Å at 1.1 mm."""
+    layer = fwdfit.Layer("Al", values["layers.Al.thickness_um"], values["layers.Al.sld_e6_per_A2"],
+                         values["layers.Al.mu_per_m"], AL.mu_per_m_per_A)
+    x_um = fwdfit.pixel_grid(-700.8, 700.8, 2.4)
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=values["sample.tilt_deg"], centre_um=values["sample.centre_um"],
+                             layers=(layer,)),
+        instruments=instruments(), spectra=spectra({"l46": 4.6}),
+        profiles=(fwdfit.Profile("boa_d01.1mm", 1.1, "white", "", x_um),
+                  fwdfit.Profile("boa_d08.5mm", 8.5, "white", "", x_um),
+                  fwdfit.Profile("icon_l4.6A", 1.1, "l46", "icon", x_um)),
+        fit=fwdfit.FitSpec(tuple(values)))
 
 
 def main(n_draws: int = 40, time_limit_s: float = 900.0, quick: bool = False) -> dict:
     RESULTS = results_dir(quick)
     t_begin = time.perf_counter()
-    folder = Path(tempfile.mkdtemp(prefix="fit_calibration_"))
-    (folder / "truth.toml").write_text(scene_text(TRUTH))
-    (folder / "start.toml").write_text(scene_text(START))
-    truth_profiles = fwdfit.simulate(folder / "truth.toml")
-    start_scene = fwdfit.load_scene(folder / "start.toml")
+    truth_profiles = fwdfit.simulate(scene(TRUTH))
+    start_scene = scene(START)
     base = dataclasses.replace(start_scene, profiles=tuple(
         dataclasses.replace(p, T=t.T.copy(), T_err=np.full_like(t.T, NOISE))
         for p, t in zip(start_scene.profiles, truth_profiles)), fit=fwdfit.FitSpec(tuple(START), {}))

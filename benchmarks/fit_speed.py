@@ -35,7 +35,7 @@ import warnings
 from pathlib import Path
 
 from _results import results_dir
-from _scenes import instruments_toml
+from _scenes import instruments, spectra
 
 BOA_MM = (1.1, 4.8, 8.5, 12.2, 15.9, 19.6, 23.3, 27.0, 30.7, 34.4)
 ICON_A = (2.7, 3.2, 4.0, 4.6)
@@ -55,38 +55,30 @@ def profile_list(n_profiles: int) -> list[tuple[str, float, str]]:
     return order[:n_profiles]
 
 
-def scene_text(case: dict, truth: bool, files: dict | None = None) -> str:
-    """The scene of a case at the truth or at the start, with measured files or x ranges."""
+def scene(case: dict, truth: bool, files: dict | None = None):
+    """The scene of a case at the truth or at the start (+10 %), measured (``files``) or not."""
+    import fwdfit
+
     factor = 1.0 if truth else 1.1
     half_um = case["half_width_um"]
-    lines = ["[sample]", "depth_mm = 2.0", f"tilt_deg = {0.24 if truth else 0.20}",
-             f"centre_um = {3.0 if truth else 0.0}"]
-    seen = {}
+    layers = {}
     for name in STACKS[case["layers"]]:
-        layer_name = name if name not in seen else f"{name}_right"
-        lines.append("[[sample.layers]]")
-        lines.append(f'name = "{layer_name}"')
-        if name in seen:
-            lines.append(f'same_as = "{name}"')
+        if name in layers:
+            layers[f"{name}_right"] = layers[name].tied(f"{name}_right")
         else:
-            thickness, sld, mu = LAYERS[name]
-            lines += [f"thickness_um = {thickness * factor}", f"sld_e6_per_A2 = {sld * factor}",
-                      f"mu_per_m = {mu * factor}"]
-        seen[name] = True
-    lines.append(instruments_toml({f"l{l}": l for l in ICON_A}, PIXEL_UM))
-    for name, distance, spectrum in profile_list(case["profiles"]):
-        lines += ["[[profiles]]", f'name = "{name}"', f"distance_mm = {distance}", f'spectrum = "{spectrum}"']
-        if spectrum != "white":
-            lines.append('instrument = "icon"')
-        if files:
-            lines.append(f'file = "{files[name]}"')
-        else:
-            lines += [f"x_min_um = {-half_um}", f"x_max_um = {half_um}"]
+            layers[name] = fwdfit.Layer(name, *(factor * value for value in LAYERS[name]))
+    x_um = fwdfit.pixel_grid(-half_um, half_um, PIXEL_UM)
+    profiles = tuple(fwdfit.Profile(name, distance, spectrum, "" if spectrum == "white" else "icon", x_um,
+                                    file=files and files[name])
+                     for name, distance, spectrum in profile_list(case["profiles"]))
     vary = ["sample.tilt_deg", "sample.centre_um"] + [
         f"layers.{name}.{key}" for name in dict.fromkeys(STACKS[case["layers"]])
         for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m")]
-    lines += ["[fit]", "vary = [" + ", ".join(f'"{v}"' for v in vary) + "]"]
-    return "\n".join(lines) + "\n"
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.24 if truth else 0.20, centre_um=3.0 if truth else 0.0,
+                             layers=tuple(layers.values())),
+        instruments=instruments(PIXEL_UM), spectra=spectra({f"l{l}": l for l in ICON_A}),
+        profiles=profiles, fit=fwdfit.FitSpec(tuple(vary)))
 
 
 def run_case(case: dict) -> dict:
@@ -99,8 +91,7 @@ def run_case(case: dict) -> dict:
     import fwdfit
 
     folder = Path(tempfile.mkdtemp(prefix="fit_speed_"))
-    (folder / "truth.toml").write_text(scene_text(case, truth=True))
-    truth_scene = fwdfit.load_scene(folder / "truth.toml")
+    truth_scene = scene(case, truth=True)
     rng = np.random.default_rng(0)
     files = {}
     for p in fwdfit.simulate(truth_scene):
@@ -108,19 +99,18 @@ def run_case(case: dict) -> dict:
         files[p.name] = folder / f"{p.name}.csv"
         np.savetxt(files[p.name], np.c_[p.x_um, T, np.full_like(T, NOISE)], delimiter=",",
                    header="x_um,T,T_err", comments="")
-    (folder / "start.toml").write_text(scene_text(case, truth=False, files=files))
-    scene = fwdfit.load_scene(folder / "start.toml")
+    start_scene = fwdfit.load_scene(fwdfit.save_scene(scene(case, truth=False, files=files), folder / "start.toml"))
     truth = {"sample.tilt_deg": 0.24, "sample.centre_um": 3.0}
     for name in STACKS[case["layers"]]:
         for key, value in zip(("thickness_um", "sld_e6_per_A2", "mu_per_m"), LAYERS[name]):
             truth[f"layers.{name}.{key}"] = value
     start = time.perf_counter()
-    fitter = fwdfit.Fitter(scene)
+    fitter = fwdfit.Fitter(start_scene)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = fitter()
     pulls = {n: (v - truth[n]) / e for n, v, e in zip(result.names, result.values, result.errors)}
-    return {**case, "pixels": int(sum(len(p.x_um) for p in scene.profiles)),
+    return {**case, "pixels": int(sum(len(p.x_um) for p in start_scene.profiles)),
             "free_parameters": len(result.names), "compile_s": fitter.compile_time_s,
             "fit_s": result.wall_time_s, "total_s": time.perf_counter() - start,
             "steps": result.n_steps, "converged": result.converged, "chi2_reduced": result.chi2_reduced,

@@ -21,6 +21,7 @@ Writes ``benchmarks/results/image_rows.json`` (``--quick``: 40 rows, into result
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -40,43 +41,16 @@ import fwdfit  # noqa: E402
 from _results import machine_record, results_dir  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from helpers import gaussian_line_table  # noqa: E402
+from helpers import gaussian_line_table, image_scene  # noqa: E402
 
 AL = fwdfit.constants_from_formula("Al", 2.70)
 N_COLS, PIXEL_UM, X0_UM = 750, 2.4, -900.0
 COUNTS = 1e4  # open-beam counts per pixel
-SCENE = """
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.15
-centre_um = 0.0
 
-[[sample.layers]]
-name = "Al"
-thickness_um = 1100.0
-material = "Al"
-density_g_cm3 = 2.70
 
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.l27]
-wavelength_A = 2.7
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "radiograph"
-distance_mm = 8.5
-spectrum = "l27"
-{data}
-
-[fit]
-vary = ["sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um",
-        "layers.Al.sld_e6_per_A2", "layers.Al.mu_per_m"]
-"""
+def scene(folder: Path) -> fwdfit.Scene:
+    """The Al block (start 1100 µm) of ``helpers.image_scene``, the image T.tif in ``folder``."""
+    return image_scene(folder / "T.tif", thickness_um=1100.0, x0_um=X0_UM, n_cols=N_COLS, pixel_um=PIXEL_UM)
 
 
 def radiograph(n_rows: int, seed: int = 0):
@@ -99,7 +73,9 @@ def one_row_alone(folder: Path, row: np.ndarray) -> dict:
     x_um = X0_UM + (np.arange(N_COLS) + 0.5) * PIXEL_UM
     lines = ["x_um,T"] + [f"{x:.6f},{t:.9g}" for x, t in zip(x_um, row)]
     (folder / "row.csv").write_text("\n".join(lines) + "\n")
-    (folder / "row.toml").write_text(SCENE.format(data='file = "row.csv"'))
+    one = scene(folder)
+    row_profile = dataclasses.replace(one.profiles[0], image_file=None, file=folder / "row.csv")
+    fwdfit.save_scene(dataclasses.replace(one, profiles=(row_profile,)), folder / "row.toml")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fitter = fwdfit.Fitter(fwdfit.load_scene(folder / "row.toml"))
@@ -125,7 +101,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(temporary)
         tifffile.imwrite(folder / "T.tif", image.astype(np.float32))
-        (folder / "scene.toml").write_text(SCENE.format(data=f'image = "T.tif"\nx0_um = {X0_UM}'))
+        fwdfit.save_scene(scene(folder), folder / "scene.toml")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             fwdfit.enable_compilation_cache(folder / "cache")  # cold: compiles

@@ -36,7 +36,7 @@ from _results import machine_record, results_dir  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from helpers import gaussian_line_table  # noqa: E402
-from test_image_series import N_COLS, NOISE, PIXEL_UM, SCENE, SHIFT_UM, X0_UM  # noqa: E402
+from test_image_series import N_COLS, NOISE, PIXEL_UM, SHIFT_UM, X0_UM, series_scene  # noqa: E402
 
 AL = fwdfit.constants_from_formula("Al", 2.70)
 
@@ -56,12 +56,12 @@ def make_series(folder: Path, n_images: int, n_rows: int) -> list[Path]:
     for i, image in enumerate(images):
         paths.append(folder / f"proj_{i:03d}.tif")
         tifffile.imwrite(paths[-1], image.astype(np.float32))
-    (folder / "scene.toml").write_text(SCENE)
+    fwdfit.save_scene(series_scene(folder), folder / "scene.toml")
     return paths
 
 
 def _timed_run(scene: Path, images, out: Path, workers: int) -> float:
-    from fwdfit._image_series import fit_series
+    from fwdfit.images import fit_series
 
     begin = time.perf_counter()
     lines = fit_series(scene, images, out, workers=workers)

@@ -28,10 +28,8 @@ import dataclasses
 import json
 import os
 import platform
-import re
 import tempfile
 import time
-import tomllib
 from pathlib import Path
 
 import jax
@@ -44,10 +42,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+import fwdfit  # noqa: E402
 from fwdfit import load_scene, simulate  # noqa: E402
-from fwdfit._paganin import paganin_filter_1d  # noqa: E402
-from fwdfit._paganin_scene import paganin_layer, paganin_profiles, profile_tau_um2  # noqa: E402
-from fwdfit._tables import read_columns, write_columns  # noqa: E402
+from fwdfit.paganin import paganin_filter_1d  # noqa: E402
+from fwdfit.paganin import paganin_layer, paganin_profiles, profile_tau_um2  # noqa: E402
+from fwdfit.scene import read_columns, write_columns  # noqa: E402
 from _results import results_dir  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,115 +82,62 @@ class Case:
 
 # ---------------------------------------------------------------- scenes
 
-def _toml_text(document: dict) -> str:
-    """A TOML rendering of the plain scene documents used here (tables, arrays of tables)."""
-    lines: list[str] = []
-
-    def key(k):
-        return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)
-
-    def value(v):
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(value(item) for item in v) + "]"
-        return json.dumps(v)
-
-    def is_array_of_tables(v):
-        return isinstance(v, list) and v and all(isinstance(item, dict) for item in v)
-
-    def table(prefix, entries, header):
-        if header:
-            lines.append(header)
-        for k, v in entries.items():
-            if not isinstance(v, dict) and not is_array_of_tables(v):
-                lines.append(f"{key(k)} = {value(v)}")
-        lines.append("")
-        for k, v in entries.items():
-            name = f"{prefix}.{key(k)}" if prefix else key(k)
-            if isinstance(v, dict):
-                table(name, v, f"[{name}]")
-            elif is_array_of_tables(v):
-                for item in v:
-                    table(name, item, f"[[{name}]]")
-
-    table("", document, None)
-    return "\n".join(lines)
-
-
-def _measured_scene(document: dict, source_dir: Path, measured: dict, folder: Path,
-                    vary: list[str]) -> Path:
-    """Write ``folder/scene.toml`` with every profile read from ``<name>.csv`` (x_um, T, T_err)."""
+def _measured_scene(scene: fwdfit.Scene, measured: dict, folder: Path, vary: list[str]) -> Path:
+    """Save ``folder/scene.toml``: ``scene`` with every profile read from ``<name>.csv`` (x_um, T, T_err)."""
     folder.mkdir(parents=True)
-    document = json.loads(json.dumps(document))  # a deep copy
-    for spectrum in document["spectra"].values():
-        if "file" in spectrum:
-            spectrum["file"] = str((source_dir / spectrum["file"]).resolve())
-    for profile in document["profiles"]:
-        profile.pop("x_min_um", None)
-        profile.pop("x_max_um", None)
-        profile["file"] = f"{profile['name']}.csv"
-        write_columns(folder / profile["file"], measured[profile["name"]])
-    document["fit"] = {"vary": vary}
-    (folder / "scene.toml").write_text(_toml_text(document))
-    return folder / "scene.toml"
-
-
-def _read_toml(path: Path) -> dict:
-    with open(path, "rb") as stream:
-        return tomllib.load(stream)
+    profiles = []
+    for profile in scene.profiles:
+        file = folder / f"{profile.name}.csv"
+        write_columns(file, measured[profile.name])
+        profiles.append(dataclasses.replace(profile, x_um=measured[profile.name]["x_um"], file=file))
+    return fwdfit.save_scene(dataclasses.replace(scene, profiles=tuple(profiles), fit=fwdfit.FitSpec(tuple(vary))),
+                             folder / "scene.toml")
 
 
 def raytrace_case(name: str, label: str, sample: str, vary, tmp: Path) -> Case:
     source = DATA / "raytrace" / name
-    document = _read_toml(source / "scene.toml")
+    scene = load_scene(source / "scene.toml")
     measured, truth = {}, {}
-    for profile in document["profiles"]:
-        table = read_columns(source / f"{profile['name']}.csv", ["x_um", "T", "T_err", "T_att"])
-        measured[profile["name"]] = {"x_um": table["x_um"], "T": table["T"],
-                                     "T_err": np.maximum(table["T_err"], T_ERR_FLOOR)}
-        truth[profile["name"]] = table["T_att"]
-    scene = _measured_scene(document, source, measured, tmp / name, vary)
-    return Case(label, sample, "ray tracer", scene, truth)
+    for profile in scene.profiles:
+        table = read_columns(source / f"{profile.name}.csv", ["x_um", "T", "T_err", "T_att"])
+        measured[profile.name] = {"x_um": table["x_um"], "T": table["T"],
+                                  "T_err": np.maximum(table["T_err"], T_ERR_FLOOR)}
+        truth[profile.name] = table["T_att"]
+    return Case(label, sample, "ray tracer", _measured_scene(scene, measured, tmp / name, vary), truth)
 
 
 def mcstas_case(scene_name: str, label: str, tmp: Path) -> Case:
     source = DATA / "mcstas"
-    document = _read_toml(source / scene_name)
+    scene = load_scene(source / scene_name)
     measured, truth = {}, {}
-    for profile in document["profiles"]:
-        table = read_columns(source / f"{profile['name']}.csv", ["x_um", "T", "T_err"])
-        att = read_columns(source / f"{profile['name']}_attenuation_only.csv", ["x_um", "T"])
+    for profile in scene.profiles:
+        table = read_columns(source / f"{profile.name}.csv", ["x_um", "T", "T_err"])
+        att = read_columns(source / f"{profile.name}_attenuation_only.csv", ["x_um", "T"])
         assert np.allclose(att["x_um"], table["x_um"])
-        measured[profile["name"]] = {"x_um": table["x_um"], "T": table["T"],
-                                     "T_err": np.maximum(table["T_err"], T_ERR_FLOOR)}
-        truth[profile["name"]] = att["T"]
-    scene = _measured_scene(document, source, measured, tmp / Path(scene_name).stem, AL_VARY)
-    return Case(label, "Al", "McStas", scene, truth)
+        measured[profile.name] = {"x_um": table["x_um"], "T": table["T"],
+                                  "T_err": np.maximum(table["T_err"], T_ERR_FLOOR)}
+        truth[profile.name] = att["T"]
+    path = _measured_scene(scene, measured, tmp / Path(scene_name).stem, AL_VARY)
+    return Case(label, "Al", "McStas", path, truth)
 
 
 def oxide_icon_case(tmp: Path) -> Case:
     """The oxide sample at ICON (1.1 mm, four lines): simulated, plus Gaussian noise."""
-    document = _read_toml(DATA / "raytrace" / "oxide5_boa" / "scene.toml")
-    document["instrument"] = {"aperture": "circular", "aperture_mm": 40.0,
-                              "aperture_distance_m": 5.5, "pixel_um": 2.4,
-                              "psf_fwhm_um": 0.0, "fresnel": False}
-    document["spectra"] = {f"l{lam}A": {"wavelength_A": lam, "fwhm_rel": 0.15}
-                           for lam in ICON_WAVELENGTHS_A}
-    document["profiles"] = [{"name": f"l{lam}A", "distance_mm": 1.1, "spectrum": f"l{lam}A",
-                             "x_min_um": -912.0, "x_max_um": 912.0} for lam in ICON_WAVELENGTHS_A]
-    folder = tmp / "oxide5_icon_model"
-    folder.mkdir()
-    (folder / "scene.toml").write_text(_toml_text(document))
+    oxide = load_scene(DATA / "raytrace" / "oxide5_boa" / "scene.toml")
+    x_um = fwdfit.pixel_grid(-912.0, 912.0, 2.4)
+    scene = dataclasses.replace(
+        oxide, instruments={"": fwdfit.Instrument("circular", 40.0, 5.5, 2.4)},
+        spectra={f"l{lam}A": fwdfit.GaussianLine(lam, 0.15) for lam in ICON_WAVELENGTHS_A},
+        profiles=tuple(fwdfit.Profile(f"l{lam}A", 1.1, f"l{lam}A", "", x_um) for lam in ICON_WAVELENGTHS_A))
     rng = np.random.default_rng(SEED)
     measured, truth = {}, {}
-    for p in simulate(folder / "scene.toml"):
+    for p in simulate(scene):
         noisy = p.T + NOISE_SIGMA * rng.standard_normal(p.T.shape)
         measured[p.name] = {"x_um": p.x_um, "T": noisy, "T_err": np.full_like(noisy, NOISE_SIGMA)}
         truth[p.name] = p.T_att
-    scene = _measured_scene(document, folder, measured, tmp / "oxide5_icon", OXIDE_VARY)
+    path = _measured_scene(scene, measured, tmp / "oxide5_icon", OXIDE_VARY)
     return Case("oxide, ICON, fwdfit.simulate + 0.5 % noise", "oxide",
-                "fwdfit.simulate + noise", scene, truth)
+                "fwdfit.simulate + noise", path, truth)
 
 
 # ------------------------------------------------- (c) forward-model fit hook

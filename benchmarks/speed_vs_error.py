@@ -31,8 +31,8 @@ import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
 from _results import results_dir  # noqa: E402
-from fwdfit._model import DEPTH_PIECES  # noqa: E402
-from fwdfit._paganin_scene import profile_tau_um2  # noqa: E402
+from fwdfit.model import DEPTH_PIECES  # noqa: E402
+from fwdfit.paganin import profile_tau_um2  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"BOA white beam": ROOT / "tests/data/raytrace/al_boa_tilt0/scene.toml",

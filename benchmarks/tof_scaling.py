@@ -14,45 +14,28 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 import time
-from pathlib import Path
 
 from _results import machine_record, results_dir
 
 LAMBDA_RANGE_A = (1.5, 6.0)
 PIXEL_UM = 2.4
 
-SCENE_HEAD = """
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.24
+def scene_of(n_bins: int, pixels: int):
+    """The NCrystal Al block at 5 mm: one band spectrum and one profile per bin."""
+    import fwdfit
 
-[[sample.layers]]
-name = "Al"
-thickness_um = 1000
-ncrystal = "Al_sg225.ncmat"
-
-[instrument]
-aperture = "circular"
-aperture_mm = 20.0
-aperture_distance_m = 10.0
-pixel_um = {pixel_um}
-"""
-
-
-def scene_text(n_bins: int, pixels: int) -> str:
-    """The scene: one band spectrum and one profile per bin."""
     lo, hi = LAMBDA_RANGE_A
     edges = [lo + (hi - lo) * i / n_bins for i in range(n_bins + 1)]
     half = 0.5 * pixels * PIXEL_UM
-    parts = [SCENE_HEAD.format(pixel_um=PIXEL_UM)]
-    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
-        parts.append(f'[spectra.b{i:03d}]\nlambda_min_A = {a:.6f}\nlambda_max_A = {b:.6f}\n')
-    for i in range(n_bins):
-        parts.append(f'[[profiles]]\nname = "b{i:03d}"\ndistance_mm = 5.0\nspectrum = "b{i:03d}"\n'
-                     f'x_min_um = {-half}\nx_max_um = {half}\n')
-    return "\n".join(parts)
+    names = [f"b{i:03d}" for i in range(n_bins)]
+    layer = fwdfit.Layer.from_material("Al", 1000.0, fwdfit.constants_from_ncrystal("Al_sg225.ncmat"))
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.24, centre_um=0.0, layers=(layer,)),
+        instruments={"": fwdfit.Instrument("circular", 20.0, 10.0, PIXEL_UM)},
+        spectra={name: fwdfit.BandSpectrum(a, b) for name, a, b in zip(names, edges[:-1], edges[1:])},
+        profiles=tuple(fwdfit.Profile(name, 5.0, name, "", fwdfit.pixel_grid(-half, half, PIXEL_UM))
+                       for name in names))
 
 
 def measure(n_bins: int, pixels: int, repeats: int) -> dict:
@@ -61,10 +44,7 @@ def measure(n_bins: int, pixels: int, repeats: int) -> dict:
 
     import fwdfit
 
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "scene.toml"
-        path.write_text(scene_text(n_bins, pixels))
-        scene = fwdfit.load_scene(path)
+    scene = scene_of(n_bins, pixels)
     start = time.perf_counter()
     model = fwdfit.build_model(scene)
     plan_s = time.perf_counter() - start

@@ -1,4 +1,4 @@
-"""Test helpers: reference tables, scene files written on the fly, edge metrics, exact
+"""Test helpers: reference tables, scenes built on the fly, edge metrics, exact
 straight-ray Beer-Lambert profiles and central differences.
 
 Everything here is NumPy (or plain JAX calls of the public API) and independent of the
@@ -117,59 +117,103 @@ def rms(a) -> float:
 # --------------------------------------------------------------------------- scenes on the fly
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, (int, float)):
-        return repr(float(value)) if isinstance(value, float) else str(value)
-    raise TypeError(f"no TOML for {value!r}")
+def scene_differences(a, b, where: str = "scene") -> list[str]:
+    """Where two scenes (or any of their parts) differ, field by field: arrays bit for bit
+    (NaN equal to NaN), paths as the files they name; a scene's own ``path`` is ignored."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a) and type(a) is type(b):
+        return [d for f in dataclasses.fields(a) if f.compare and not (where == "scene" and f.name == "path")
+                for d in scene_differences(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")]
+    if isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys():
+        return [d for k in a for d in scene_differences(a[k], b[k], f"{where}[{k!r}]")]
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in scene_differences(x, y, f"{where}[{i}]")]
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        same = (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
+                and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+        return [] if same else [where]
+    if isinstance(a, Path) and isinstance(b, Path):
+        return [] if a.resolve() == b.resolve() else [f"{where}: {a} != {b}"]
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return []
+    return [] if type(a) is type(b) and a == b else [f"{where}: {a!r} != {b!r}"]
 
 
-def scene_text(layers, *, profiles, spectrum, depth_mm=2.0, tilt_deg=0.0, centre_um=0.0,
+def make_scene(layers, *, profiles, spectrum, depth_mm=2.0, tilt_deg=0.0, centre_um=0.0,
                aperture="square", aperture_mm=40.0, aperture_distance_m=7.5, pixel_um=2.4,
-               psf_fwhm_um=0.0) -> str:
-    """A scene file with one instrument and one spectrum named ``s``.
+               psf_fwhm_um=0.0, fresnel=False, vary=()):
+    """A ``Scene`` value with one instrument and one spectrum named ``s``.
 
-    layers: list of dicts of layer keys; profiles: list of (name, distance_mm, x_min_um,
-    x_max_um); spectrum: dict of spectrum keys (``file`` may be an absolute path).
+    layers: ``Layer`` values; profiles: list of (name, distance_mm, x_min_um, x_max_um);
+    spectrum: a spectrum value (``white_beam()``, ``GaussianLine``).
     """
-    lines = ["[sample]", f"depth_mm = {_toml_value(float(depth_mm))}",
-             f"tilt_deg = {_toml_value(float(tilt_deg))}",
-             f"centre_um = {_toml_value(float(centre_um))}", ""]
-    for layer in layers:
-        lines.append("[[sample.layers]]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in layer.items()]
-        lines.append("")
-    lines += ["[instrument]", f'aperture = "{aperture}"',
-              f"aperture_mm = {_toml_value(float(aperture_mm))}",
-              f"aperture_distance_m = {_toml_value(float(aperture_distance_m))}",
-              f"pixel_um = {_toml_value(float(pixel_um))}",
-              f"psf_fwhm_um = {_toml_value(float(psf_fwhm_um))}", "fresnel = false", "",
-              "[spectra.s]"]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in spectrum.items()]
-    lines.append("")
-    for name, distance_mm, x_min_um, x_max_um in profiles:
-        lines += ["[[profiles]]", f'name = "{name}"',
-                  f"distance_mm = {_toml_value(float(distance_mm))}", 'spectrum = "s"',
-                  f"x_min_um = {_toml_value(float(x_min_um))}",
-                  f"x_max_um = {_toml_value(float(x_max_um))}", ""]
-    return "\n".join(lines)
+    import fwdfit
+
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=depth_mm, tilt_deg=tilt_deg, centre_um=centre_um, layers=tuple(layers)),
+        instruments={"": fwdfit.Instrument(aperture, aperture_mm, aperture_distance_m, pixel_um,
+                                           psf_fwhm_um=psf_fwhm_um, fresnel=fresnel)},
+        spectra={"s": spectrum},
+        profiles=tuple(fwdfit.Profile(name, distance_mm, "s", "", fwdfit.pixel_grid(x_min, x_max, pixel_um))
+                       for name, distance_mm, x_min, x_max in profiles),
+        fit=fwdfit.FitSpec(tuple(vary)))
 
 
 def write_scene(folder: Path, *args, name: str = "scene.toml", **kwargs):
-    """Write ``scene_text(*args, **kwargs)`` to ``folder/name`` and load it."""
-    from fwdfit import load_scene
+    """Save ``make_scene(*args, **kwargs)`` as ``folder/name`` and load it (validated)."""
+    import fwdfit
 
-    path = Path(folder) / name
-    path.write_text(scene_text(*args, **kwargs))
-    return load_scene(path)
+    return fwdfit.load_scene(fwdfit.save_scene(make_scene(*args, **kwargs), Path(folder) / name))
 
 
-def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0) -> dict:
-    return {"name": name, "thickness_um": float(thickness_um), "sld_e6_per_A2": float(sld),
-            "mu_per_m": float(mu), "mu_per_m_per_A": float(mu_per_A)}
+def small_scene(values: dict, *, file: Path | None = None, vary=(), bounds=None):
+    """One Al block (mu = 9.06 + 0.774 lambda /m), the ICON 4.6 Å line (circular 40 mm
+    aperture at 5.5 m), one profile ``line`` at 1.1 mm over +-600 µm, read from ``file`` if
+    given. ``values``: ``sample.centre_um``, ``layers.Al.thickness_um``,
+    ``layers.Al.sld_e6_per_A2``."""
+    import fwdfit
+
+    layer = fwdfit.Layer("Al", values["layers.Al.thickness_um"], values["layers.Al.sld_e6_per_A2"], 9.06, 0.774)
+    return fwdfit.Scene(
+        sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.0, centre_um=values["sample.centre_um"], layers=(layer,)),
+        instruments={"": fwdfit.Instrument("circular", 40.0, 5.5, 2.4)},
+        spectra={"l46": fwdfit.GaussianLine(4.6, 0.15)},
+        profiles=(fwdfit.Profile("line", 1.1, "l46", "", fwdfit.pixel_grid(-600.0, 600.0, 2.4), file=file),),
+        fit=fwdfit.FitSpec(tuple(vary), dict(bounds or {})))
+
+
+IMAGE_VARY = ("sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um", "layers.Al.sld_e6_per_A2",
+              "layers.Al.mu_per_m")
+
+
+def image_scene(image_file: Path, *, thickness_um: float, x0_um: float, n_cols: int, pixel_um: float = 2.4,
+                image_err_file: Path | None = None, per_row=()):
+    """An Al block (2.70 g/cm3, start tilt 0.15°) at 8.5 mm, the ICON 2.7 Å line, one
+    image profile ``radiograph`` of ``n_cols`` columns from ``x0_um``; ``IMAGE_VARY`` free."""
+    import fwdfit
+
+    profile = fwdfit.Profile("radiograph", 8.5, "l27", "", fwdfit.pixel_grid(x0_um, x0_um + n_cols * pixel_um, pixel_um),
+                             image_file=image_file, image_err_file=image_err_file)
+    layer = fwdfit.Layer.from_material("Al", thickness_um, fwdfit.constants_from_formula("Al", 2.70))
+    return fwdfit.Scene(fwdfit.Sample(depth_mm=2.0, tilt_deg=0.15, centre_um=0.0, layers=(layer,)),
+                        {"": fwdfit.Instrument("circular", 40.0, 5.5, pixel_um)},
+                        {"l27": fwdfit.GaussianLine(2.7, 0.15)}, (profile,),
+                        fwdfit.FitSpec(IMAGE_VARY, per_row=tuple(per_row)))
+
+
+def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0):
+    import fwdfit
+
+    return fwdfit.Layer(name, float(thickness_um), float(sld), float(mu), float(mu_per_A))
+
+
+def white_beam():
+    """The BOA white-beam table as a spectrum value (its file kept for writing scenes)."""
+    import fwdfit
+
+    lam, weight = boa_spectrum()
+    return fwdfit.TabulatedSpectrum(lam, weight, BOA_SPECTRUM)
 
 
 def boa_spectrum() -> tuple[np.ndarray, np.ndarray]:
@@ -303,9 +347,8 @@ def replace_params(params, **changes):
 # --------------------------------------------------------------------------- shared scenes
 
 
-def oxide_layer(name, thickness_um, sld, mu, mu_per_A=0.3) -> dict:
-    return {"name": name, "thickness_um": float(thickness_um), "sld_e6_per_A2": float(sld),
-            "mu_per_m": float(mu), "mu_per_m_per_A": float(mu_per_A)}
+def oxide_layer(name, thickness_um, sld, mu, mu_per_A=0.3):
+    return al_layer(name, thickness_um, sld, mu, mu_per_A)
 
 
 STACK_LAYERS = [oxide_layer("ox2_left", 80.0, 3.518, 12.0), oxide_layer("ox1_left", 160.0, 3.304, 24.0),
@@ -323,7 +366,7 @@ def stack_scene(folder: Path):
     """
     return write_scene(folder, STACK_LAYERS, name="stack.toml", tilt_deg=0.5,
                        profiles=[("d34.4mm", 34.4, -1300.0, 1300.0)],
-                       spectrum={"file": str(BOA_SPECTRUM)})
+                       spectrum=white_beam())
 
 
 def free_layer_parameters(scene) -> list[str]:

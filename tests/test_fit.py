@@ -41,7 +41,7 @@ import pytest
 
 import fwdfit
 from fwdfit.cli import main
-from helpers import BOA_SPECTRUM, gaussian_line_table, read_table, rms
+from helpers import BOA_SPECTRUM, gaussian_line_table, read_table, rms, small_scene, white_beam
 
 NOISE = 0.01  # added Gaussian noise, = T_err
 
@@ -152,60 +152,35 @@ def _write_profiles(folder: Path, profiles, layers, tilt_deg, centre_um, seed):
     return truth
 
 
-def _instrument_toml(table: str, inst: dict) -> str:
-    return (f"[{table}]\naperture = \"{inst['aperture']}\"\naperture_mm = {inst['aperture_mm']}\n"
-            f"aperture_distance_m = {inst['aperture_distance_m']}\npixel_um = {PIXEL_UM}\n"
-            "psf_fwhm_um = 0.0\nfresnel = false\n")
+SPECTRA = {"white": white_beam(), **{name: fwdfit.GaussianLine(w, FWHM_REL) for name, w in LINES.items()}}
 
 
-def _profiles_toml(profiles) -> str:
-    out = []
-    for name, instrument, spectrum, distance_mm, *_ in profiles:
-        out += ["[[profiles]]", f'name = "{name}"', f"distance_mm = {distance_mm}",
-                f'spectrum = "{spectrum}"', f'file = "{name}.csv"']
-        if instrument:
-            out.append(f'instrument = "{instrument}"')
-        out.append("")
-    return "\n".join(out)
+def _profiles(folder: Path, profiles) -> tuple:
+    return tuple(fwdfit.Profile(name, distance_mm, spectrum, instrument, _pixel_centres(x_min, x_max),
+                                file=folder / f"{name}.csv")
+                 for name, instrument, spectrum, distance_mm, x_min, x_max, _ in profiles)
 
 
-def _vary_toml(start: dict) -> str:
-    return "[fit]\nvary = [" + ", ".join(f'"{k}"' for k in start) + "]\n"
+def _sample(start: dict, layers) -> fwdfit.Sample:
+    return fwdfit.Sample(depth_mm=2.0, tilt_deg=start["sample.tilt_deg"], centre_um=start["sample.centre_um"],
+                         layers=tuple(layers))
 
 
-def _spectra_toml() -> str:
-    text = f'[spectra.white]\nfile = "{BOA_SPECTRUM}"\n'
-    for name, wavelength in LINES.items():
-        text += f"\n[spectra.{name}]\nwavelength_A = {wavelength}\nfwhm_rel = {FWHM_REL}\n"
-    return text
+def al_scene(folder: Path, start: dict) -> fwdfit.Scene:
+    layer = fwdfit.Layer("Al", start["layers.Al.thickness_um"], start["layers.Al.sld_e6_per_A2"],
+                         start["layers.Al.mu_per_m"], AL.mu_per_m_per_A)
+    instruments = {"": fwdfit.Instrument(pixel_um=PIXEL_UM, **BOA), "icon": fwdfit.Instrument(pixel_um=PIXEL_UM, **ICON)}
+    return fwdfit.Scene(_sample(start, [layer]), instruments, SPECTRA, _profiles(folder, AL_PROFILES),
+                        fwdfit.FitSpec(tuple(start)))
 
 
-def al_scene_text(start: dict) -> str:
-    return "\n".join([
-        f"[sample]\ndepth_mm = 2.0\ntilt_deg = {start['sample.tilt_deg']!r}\n"
-        f"centre_um = {start['sample.centre_um']!r}\n",
-        f'[[sample.layers]]\nname = "Al"\nthickness_um = {start["layers.Al.thickness_um"]!r}\n'
-        f"sld_e6_per_A2 = {start['layers.Al.sld_e6_per_A2']!r}\n"
-        f"mu_per_m = {start['layers.Al.mu_per_m']!r}\nmu_per_m_per_A = {AL.mu_per_m_per_A!r}\n",
-        _instrument_toml("instrument", BOA), _instrument_toml("instruments.icon", ICON),
-        _spectra_toml(), _profiles_toml(AL_PROFILES), _vary_toml(start)])
-
-
-def oxide_scene_text(start: dict) -> str:
-    layers = ""
-    for name, thickness, sld, mu in OXIDE_LAYERS:  # values not in ``start`` are fixed at the truth
-        key = f"layers.{name}."
-        layers += (f'[[sample.layers]]\nname = "{name}"\n'
-                   f"thickness_um = {start.get(key + 'thickness_um', thickness)!r}\n"
-                   f"sld_e6_per_A2 = {start.get(key + 'sld_e6_per_A2', sld)!r}\n"
-                   f"mu_per_m = {start.get(key + 'mu_per_m', mu)!r}\n\n")
-    layers += ('[[sample.layers]]\nname = "oxide1_right"\nsame_as = "oxide1_left"\n\n'
-               '[[sample.layers]]\nname = "oxide2_right"\nsame_as = "oxide2_left"\n')
-    return "\n".join([
-        f"[sample]\ndepth_mm = 2.0\ntilt_deg = {start['sample.tilt_deg']!r}\n"
-        f"centre_um = {start['sample.centre_um']!r}\n", layers,
-        _instrument_toml("instrument", BOA), _spectra_toml(), _profiles_toml(OXIDE_PROFILES),
-        _vary_toml(start)])
+def oxide_scene(folder: Path, start: dict) -> fwdfit.Scene:
+    left = [fwdfit.Layer(name, *(start.get(f"layers.{name}.{key}", value)  # not in ``start``: fixed at the truth
+                                 for key, value in zip(("thickness_um", "sld_e6_per_A2", "mu_per_m"), values)))
+            for name, *values in OXIDE_LAYERS]
+    layers = [*left, left[1].tied("oxide1_right"), left[0].tied("oxide2_right")]
+    return fwdfit.Scene(_sample(start, layers), {"": fwdfit.Instrument(pixel_um=PIXEL_UM, **BOA)}, SPECTRA,
+                        _profiles(folder, OXIDE_PROFILES), fwdfit.FitSpec(tuple(start)))
 
 
 def al_reference_layers():
@@ -221,15 +196,13 @@ def make_al_case(folder: Path):
     """Scene file (starting values) and per-profile truth of the Al block."""
     folder.mkdir(parents=True, exist_ok=True)
     truth = _write_profiles(folder, AL_PROFILES, al_reference_layers(), 0.24, 3.0, seed=101)
-    (folder / "scene.toml").write_text(al_scene_text(AL_START))
-    return folder / "scene.toml", truth
+    return fwdfit.save_scene(al_scene(folder, AL_START), folder / "scene.toml"), truth
 
 
 def make_oxide_case(folder: Path):
     folder.mkdir(parents=True, exist_ok=True)
     truth = _write_profiles(folder, OXIDE_PROFILES, oxide_reference_layers(), 0.0, 0.0, seed=202)
-    (folder / "scene.toml").write_text(oxide_scene_text(OXIDE_START))
-    return folder / "scene.toml", truth
+    return fwdfit.save_scene(oxide_scene(folder, OXIDE_START), folder / "scene.toml"), truth
 
 
 # --------------------------------------------------------------------------- small scenes for the CLI
@@ -238,27 +211,18 @@ SMALL_TRUTH = {"sample.centre_um": 2.0, "layers.Al.thickness_um": 1000.0, "layer
 SMALL_START = {"sample.centre_um": -3.0, "layers.Al.thickness_um": 1050.0, "layers.Al.sld_e6_per_A2": 1.8}
 
 
-def small_scene_text(values=None, *, profile="file = \"line.csv\"", fit=None) -> str:
-    """One Al block, one ICON 4.6 Å line at 1.1 mm over ±600 µm, [fit] varying three values."""
-    v = {**SMALL_START, **(values or {})}
-    fit = fit if fit is not None else (
-        "[fit]\nvary = [" + ", ".join(f'"{k}"' for k in v) + "]\n"
-        'bounds."layers.Al.thickness_um" = [900.0, 1100.0]\n')
-    return (f"[sample]\ndepth_mm = 2.0\ntilt_deg = 0.0\ncentre_um = {v['sample.centre_um']!r}\n\n"
-            f'[[sample.layers]]\nname = "Al"\nthickness_um = {v["layers.Al.thickness_um"]!r}\n'
-            f"sld_e6_per_A2 = {v['layers.Al.sld_e6_per_A2']!r}\nmu_per_m = 9.06\n"
-            "mu_per_m_per_A = 0.774\n\n"
-            + _instrument_toml("instrument", ICON)
-            + "\n[spectra.l46]\nwavelength_A = 4.6\nfwhm_rel = 0.15\n\n"
-            + f'[[profiles]]\nname = "line"\ndistance_mm = 1.1\nspectrum = "l46"\n{profile}\n\n'
-            + fit)
+BOUNDS = {"layers.Al.thickness_um": (900.0, 1100.0)}
+
+
+def small_scene_text(folder: Path, *, file="line.csv", vary=tuple(SMALL_START), bounds=BOUNDS) -> str:
+    """The small scene (``helpers.small_scene``) from ``SMALL_START`` as text for ``folder``."""
+    return fwdfit.dump_scene(small_scene(SMALL_START, file=file and folder / file, vary=vary, bounds=bounds),
+                             folder)
 
 
 def _small_table(folder: Path) -> np.ndarray:
     """(x_um, T, T_err) rows of the small scene's profile: the model at the truth + 1 % noise."""
-    truth = folder / "truth.toml"
-    truth.write_text(small_scene_text(SMALL_TRUTH, profile="x_min_um = -600.0\nx_max_um = 600.0", fit=""))
-    simulated = fwdfit.simulate(truth)[0]
+    simulated = fwdfit.simulate(small_scene(SMALL_TRUTH))[0]
     T = simulated.T + np.random.default_rng(7).normal(0.0, NOISE, simulated.T.shape)
     return np.column_stack([simulated.x_um, T, np.full_like(T, NOISE)])
 
@@ -273,42 +237,43 @@ def small_case(tmp_path_factory):
     folder = tmp_path_factory.mktemp("small")
     rows = _small_table(folder)
     _write_csv(folder / "line.csv", "x_um,T,T_err", rows)
-    (folder / "scene.toml").write_text(small_scene_text())
+    (folder / "scene.toml").write_text(small_scene_text(folder))
     return folder, rows
 
 
-def _bad_inputs(rows):
-    """name: (scene text, {csv name: (header, rows)}, words the error line must contain)."""
-    ok = small_scene_text()
+def _bad_inputs(folder: Path, rows):
+    """name: (scene text for ``folder``, {csv name: (header, rows)}, words the error line must contain)."""
+    def text(**options):
+        return small_scene_text(folder, **options)
+
+    ok = text()
     nan = rows.copy()
     nan[10, 1] = np.nan
     zero_err = rows.copy()
     zero_err[5, 2] = 0.0
+    thickness = "layers.Al.thickness_um"
+    no_profiles = text(vary=["sample.centre_um"], bounds={})
     return {
-        "unknown_vary_name": (small_scene_text(fit='[fit]\nvary = ["layers.Al.thicknes_um"]\n'), {},
+        "unknown_vary_name": (text(vary=["layers.Al.thicknes_um"], bounds={}), {},
                               ["fit.vary", "layers.Al.thicknes_um"]),
-        "unknown_layer_in_vary": (small_scene_text(fit='[fit]\nvary = ["layers.Cu.thickness_um"]\n'), {},
+        "unknown_layer_in_vary": (text(vary=["layers.Cu.thickness_um"], bounds={}), {},
                                   ["fit.vary", "layers.Cu.thickness_um"]),
-        "inverted_bounds": (small_scene_text(fit='[fit]\nvary = ["layers.Al.thickness_um"]\n'
-                                             'bounds."layers.Al.thickness_um" = [1100.0, 900.0]\n'), {},
-                            ["fit.bounds", "layers.Al.thickness_um"]),
-        "start_outside_bounds": (small_scene_text(fit='[fit]\nvary = ["layers.Al.thickness_um"]\n'
-                                                  'bounds."layers.Al.thickness_um" = [800.0, 900.0]\n'), {},
-                                 ["fit.bounds", "layers.Al.thickness_um"]),
-        "bounds_not_varied": (small_scene_text(fit='[fit]\nvary = ["sample.centre_um"]\n'
-                                               'bounds."sample.tilt_deg" = [-1.0, 1.0]\n'), {},
+        "inverted_bounds": (text(vary=[thickness], bounds={thickness: (1100.0, 900.0)}), {},
+                            ["fit.bounds", thickness]),
+        "start_outside_bounds": (text(vary=[thickness], bounds={thickness: (800.0, 900.0)}), {},
+                                 ["fit.bounds", thickness]),
+        "bounds_not_varied": (text(vary=["sample.centre_um"], bounds={"sample.tilt_deg": (-1.0, 1.0)}), {},
                               ["fit.bounds", "sample.tilt_deg"]),
-        "empty_vary": (small_scene_text(fit="[fit]\nvary = []\n"), {}, ["fit.vary"]),
+        "empty_vary": (text(vary=[], bounds={}), {}, ["fit.vary"]),
         "missing_column": (ok, {"line.csv": ("x_um,T_err", rows[:, [0, 2]])}, ["line.csv", "T"]),
         "nan_value": (ok, {"line.csv": ("x_um,T,T_err", nan)}, ["line.csv", "NaN"]),
         "single_row": (ok, {"line.csv": ("x_um,T,T_err", rows[:1])}, ["line.csv"]),
         "zero_T_err": (ok, {"line.csv": ("x_um,T,T_err", zero_err)}, ["T_err"]),
         "negative_T_err": (ok, {"line.csv": ("x_um,T,T_err", rows * [1, 1, -1])}, ["T_err"]),
-        "missing_profile_file": (small_scene_text(profile='file = "nowhere.csv"'), {}, ["nowhere.csv"]),
-        "no_measured_profile": (small_scene_text(profile="x_min_um = -600.0\nx_max_um = 600.0"), {},
-                                ["line", "no measured data"]),
-        "no_profiles_at_all": (small_scene_text(profile="").split("[[profiles]]")[0]
-                               + '[fit]\nvary = ["sample.centre_um"]\n', {}, ["profiles"]),
+        "missing_profile_file": (text(file="nowhere.csv"), {}, ["nowhere.csv"]),
+        "no_measured_profile": (text(file=None), {}, ["line", "no measured data"]),
+        "no_profiles_at_all": (no_profiles.split("[[profiles]]")[0] + no_profiles[no_profiles.index("[fit]"):],
+                               {}, ["profiles"]),
     }
 
 
@@ -323,7 +288,7 @@ def test_fit_bad_input_is_one_line_error(small_case, tmp_path, capsys, case):
     """``fwdfit fit`` on bad input: exit 1, exactly one plain line on stderr naming what is
     wrong, no traceback, nothing written to --out. All of these fail before any compile."""
     _, rows = small_case
-    text, tables, words = _bad_inputs(rows)[case]
+    text, tables, words = _bad_inputs(tmp_path, rows)[case]
     scene = tmp_path / "scene.toml"
     scene.write_text(text)
     _write_csv(tmp_path / "line.csv", "x_um,T,T_err", rows)

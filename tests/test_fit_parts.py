@@ -6,6 +6,7 @@ Fast: no fit of a whole scene here (those are in test_fit.py and test_fit_starts
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import subprocess
@@ -17,11 +18,12 @@ import numpy as np
 import pytest
 
 import fwdfit
-from fwdfit._cache import cache_dir
-from fwdfit._least_squares import levenberg_marquardt
-from fwdfit._predict import _COMPILED
-from fwdfit._quality import assess, runs_z
-from fwdfit._starts import _attenuation, _refraction_edges, outer_edges, segment
+from fwdfit.inference import cache_dir
+from fwdfit.inference import levenberg_marquardt
+from fwdfit.inference import forget_compiled
+from fwdfit.inference import assess, runs_z
+from fwdfit.inference import attenuation_from_plateau, outer_edges, refraction_edges, segment
+from helpers import small_scene
 
 PIXEL_UM = 2.4
 
@@ -68,7 +70,7 @@ def test_outer_edges_of_a_transparent_block_from_its_refraction_spikes():
         T[(outward * (x - edge) > 0) & (outward * (x - edge) < 5)] += 0.2
         T[(outward * (edge - x) > 0) & (outward * (edge - x) < 5)] -= 0.2
     assert outer_edges(x, T, blur_um=8.0, pixel_um=PIXEL_UM) is None  # no plateau to see
-    found_left, found_right, _ = _refraction_edges(x, T, 1.0, 0.005)
+    found_left, found_right, _ = refraction_edges(x, T, 1.0, 0.005)
     assert found_left == pytest.approx(left, abs=PIXEL_UM)
     assert found_right == pytest.approx(right, abs=PIXEL_UM)
 
@@ -85,7 +87,7 @@ def test_attenuation_inverts_the_spectrum_average():
     offsets = np.array([1.0, 2.5, 4.0])  # 1/m, e.g. 1/v absorption at three wavelengths
     for mu in (0.5, 9.06, 150.0):
         plateau = float(np.sum(weight * np.exp(-(mu + offsets) * 2e-3)))
-        assert _attenuation(plateau, weight, 2000.0, offsets) == pytest.approx(mu, rel=1e-9)
+        assert attenuation_from_plateau(plateau, weight, 2000.0, offsets) == pytest.approx(mu, rel=1e-9)
 
 
 # --------------------------------------------------------------------------- solver
@@ -207,38 +209,19 @@ def test_cache_dir_from_the_environment(monkeypatch, tmp_path):
     assert cache_dir() == tmp_path / "xdg" / "fwdfit"
 
 
-SCENE_WITHOUT_STARTS = """
-[sample]
-depth_mm = 2.0
-
-[[sample.layers]]
-name = "Al"
-sld_e6_per_A2 = 2.078
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.l46]
-wavelength_A = 4.6
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "line"
-distance_mm = 1.1
-spectrum = "l46"
-x_min_um = -600.0
-x_max_um = 600.0
-"""
+def _scene_without_starts(path: Path, vary) -> Path:
+    """The small Al scene with thickness_um and mu_per_m left out (NaN), ``vary`` free."""
+    scene = small_scene({"sample.centre_um": 0.0, "layers.Al.thickness_um": math.nan,
+                         "layers.Al.sld_e6_per_A2": 2.078}, vary=vary)
+    layer = dataclasses.replace(scene.sample.layers[0], mu_per_m=math.nan)
+    return fwdfit.save_scene(dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, layers=(layer,))),
+                             path)
 
 
 def test_free_values_may_have_no_start(tmp_path, capsys):
     """thickness_um and mu_per_m left out: allowed when [fit] vary names them (NaN: the fit
     estimates them), refused by simulate with one line, and refused when not varied."""
-    path = tmp_path / "scene.toml"
-    path.write_text(SCENE_WITHOUT_STARTS + '[fit]\nvary = ["layers.Al.thickness_um", "layers.Al.mu_per_m"]\n')
+    path = _scene_without_starts(tmp_path / "scene.toml", ["layers.Al.thickness_um", "layers.Al.mu_per_m"])
     layer = fwdfit.load_scene(path).sample.layers[0]
     assert math.isnan(layer.thickness_um) and math.isnan(layer.mu_per_m)
     assert layer.sld_e6_per_A2 == 2.078
@@ -248,21 +231,18 @@ def test_free_values_may_have_no_start(tmp_path, capsys):
     line = capsys.readouterr().err.strip()
     assert line.startswith("fwdfit: error:") and "thickness_um is missing" in line, line
     assert not (tmp_path / "out").exists()
-    path.write_text(SCENE_WITHOUT_STARTS + '[fit]\nvary = ["layers.Al.mu_per_m"]\n')
+    _scene_without_starts(path, ["layers.Al.mu_per_m"])
     with pytest.raises(fwdfit.FwdfitError, match="thickness_um: missing"):
         fwdfit.load_scene(path)
 
 
-def _open_beam_line_scene(tmp_path, extra: str = "") -> Path:
-    """A one-profile Al scene on a 500-pixel open-beam line, its thickness free; ``extra``
-    appended (TOML)."""
-    path = tmp_path / "scene.toml"
-    rows = np.column_stack([-600 + (np.arange(500) + 0.5) * PIXEL_UM, np.ones(500), np.full(500, 0.01)])
+def _open_beam_line_scene(tmp_path, accuracy: float = fwdfit.Scene.accuracy) -> Path:
+    """A one-profile Al scene on a 500-pixel open-beam line, its thickness free."""
+    rows = np.column_stack([fwdfit.pixel_grid(-600.0, 600.0, PIXEL_UM), np.ones(500), np.full(500, 0.01)])
     np.savetxt(tmp_path / "line.csv", rows, delimiter=",", header="x_um,T,T_err", comments="")
-    path.write_text(SCENE_WITHOUT_STARTS.replace('x_min_um = -600.0\nx_max_um = 600.0', 'file = "line.csv"')
-                    .replace('sld_e6_per_A2 = 2.078', 'sld_e6_per_A2 = 2.078\nthickness_um = 1000.0\nmu_per_m = 9.0')
-                    + '[fit]\nvary = ["layers.Al.thickness_um"]\n' + extra)
-    return path
+    scene = small_scene({"sample.centre_um": 0.0, "layers.Al.thickness_um": 1000.0, "layers.Al.sld_e6_per_A2": 2.078},
+                        file=tmp_path / "line.csv", vary=["layers.Al.thickness_um"])
+    return fwdfit.save_scene(dataclasses.replace(scene, accuracy=accuracy), tmp_path / "scene.toml")
 
 
 def test_compiled_model_is_kept_between_runs(tmp_path):
@@ -272,11 +252,11 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
     before = jax.config.jax_compilation_cache_dir
     try:
         fwdfit.enable_compilation_cache(tmp_path / "cache")
-        _COMPILED.clear()  # this process's compiled programs: the second Fitter must load the stored one
+        forget_compiled()  # this process's compiled programs: the second Fitter must load the stored one
         first = fwdfit.Fitter(path)
         stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.jaxexport"))
         assert len(stored) == 1
-        _COMPILED.clear()
+        forget_compiled()
         second = fwdfit.Fitter(path)
         values = np.array([[990.0], [1010.0]])
         np.testing.assert_array_equal(first.predict(values)[0], second.predict(values)[0])
@@ -293,7 +273,7 @@ _SHARDED_PROBE = """
 import sys, jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 import fwdfit
-from fwdfit._predict import Predictor
+from fwdfit.inference import Predictor
 fitter = fwdfit.Fitter(sys.argv[1])
 values = np.array([[990.0], [995.0], [1000.0], [1005.0], [1010.0]])
 single = fitter.predict(values)
@@ -309,7 +289,7 @@ def test_rows_are_sharded_across_devices(tmp_path):
     """On two devices (two host devices forced, as on a machine with two accelerators) a
     call's rows are split between them (rows per call rounded up to a multiple of 2) and
     the predictions equal the one-device program's to rounding."""
-    path = _open_beam_line_scene(tmp_path, '[model]\naccuracy = 0.01\n')
+    path = _open_beam_line_scene(tmp_path, accuracy=0.01)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
                FWDFIT_CACHE_DIR="off")
     done = subprocess.run([sys.executable, "-c", _SHARDED_PROBE, str(path)], env=env, capture_output=True,

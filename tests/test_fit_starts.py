@@ -90,9 +90,7 @@ def measured_scene(folder: Path, dataset: str, start: dict | None, seed: int = 0
             layers = [_set(l, parts[2], value) if l.name == parts[1] else l for l in layers]
     scene = dataclasses.replace(scene, sample=dataclasses.replace(sample, layers=tuple(layers)),
                                 profiles=tuple(profiles), fit=fwdfit.FitSpec(tuple(vary), {}))
-    out = folder / "scene.toml"
-    out.write_text(fwdfit.scene_toml(scene, folder))
-    return out
+    return fwdfit.save_scene(scene, folder / "scene.toml")
 
 
 def _cli_fit(scene: Path, out: Path, capsys):

@@ -35,9 +35,9 @@ import pytest
 import tomllib
 
 import fwdfit
-from fwdfit._aperture import APERTURES
-from fwdfit._kernel import AngularMass, fresnel_transfer
-from fwdfit._plan import fresnel_nodes
+from fwdfit.model import APERTURES
+from fwdfit.model import AngularMass, fresnel_transfer
+from fwdfit.model import fresnel_nodes
 from fwdfit.cli import main
 from helpers import (DATA, al_layer, load_reference, random_weights, replace_params,
                      rms, weighted_value, weighted_value_and_grad, write_scene)
@@ -193,12 +193,10 @@ def hard(tmp_path_factory):
     """``hard(case, precision)`` -> (T, T_att, grads); one Fresnel scene of two layers (Ti | Al
     unless the case says otherwise), every layer parameter free."""
     folder = tmp_path_factory.mktemp("fresnel_hard")
-    path = folder / "scene.toml"
-    write_scene(folder, [al_layer("Ti", 400.0, sld=-1.925, mu=60.0), al_layer("Al", 600.0)],
-                tilt_deg=CRITICAL_TILT_DEG, aperture="square", aperture_mm=1.0, aperture_distance_m=7.5,
-                profiles=[("d01.1mm", 1.1, -720.0, 720.0)], spectrum={"wavelength_A": 4.0, "fwhm_rel": 1e-3})
-    path.write_text(path.read_text().replace("fresnel = false", "fresnel = true"))
-    scene = fwdfit.load_scene(path)
+    scene = write_scene(folder, [al_layer("Ti", 400.0, sld=-1.925, mu=60.0), al_layer("Al", 600.0)],
+                        tilt_deg=CRITICAL_TILT_DEG, aperture="square", aperture_mm=1.0,
+                        aperture_distance_m=7.5, fresnel=True, profiles=[("d01.1mm", 1.1, -720.0, 720.0)],
+                        spectrum=fwdfit.GaussianLine(4.0, 1e-3))
     free = [f"layers.{l.name}.{key}" for l in scene.sample.layers
             for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m")]
     cache, built = {}, {}

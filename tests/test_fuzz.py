@@ -1,7 +1,7 @@
 """Fuzz: every scene ends in a right answer or in one clear line.
 
 Scenes are drawn over the whole validity domain of every key (docs/SCENE.md,
-``fwdfit._limits.DOMAIN``), then some are broken at one place: a value outside the
+``fwdfit.scene.DOMAIN``), then some are broken at one place: a value outside the
 domain (NaN and infinities included), a wrong type, a missing or an unknown key, a
 wrong name or reference, a broken spectrum table. Each is written as TOML and run
 through ``fwdfit.cli.main(["simulate", scene, "--out", dir])`` in-process. It must end
@@ -36,7 +36,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fwdfit._limits import DOMAIN
+from fwdfit.scene import DOMAIN
 from fwdfit.cli import main
 
 N_PIXELS = 8
@@ -314,3 +314,25 @@ def test_scenes_over_the_domain_everywhere(case):
 @given(broken_scenes(FEW_SHAPES))
 def test_broken_scenes_many(case):
     check_outcome(case)
+
+
+@settings(FEW, max_examples=150)
+@given(valid_scenes(ALL_SHAPES))
+def test_valid_scenes_round_trip_through_dump_scene(case):
+    """``load_scene(dump_scene(scene))`` is the scene, field for field, over the whole domain
+    (no model is built: cheap)."""
+    import fwdfit
+    from helpers import scene_differences
+
+    document, files = case
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        (folder / "scene.toml").write_text(toml_document(document), encoding="utf-8")
+        for name, text in files.items():
+            (folder / name).write_text(text, encoding="utf-8")
+        try:
+            scene = fwdfit.load_scene(folder / "scene.toml")
+        except fwdfit.FwdfitError:  # a combination of keys out of the domain
+            return
+        again = fwdfit.load_scene(fwdfit.save_scene(scene, folder / "sub" / "again.toml"))
+        assert scene_differences(again, scene) == []

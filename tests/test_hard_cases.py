@@ -94,7 +94,7 @@ def scenes(tmp_path_factory):
                          tilt_deg=0.25, aperture="square", aperture_mm=NARROW_D_MM,
                          aperture_distance_m=NARROW_L_M,
                          profiles=[("d01.1mm", 1.1, -720.0, 720.0)],
-                         spectrum={"wavelength_A": NARROW_LAMBDA_A, "fwhm_rel": 1e-3})
+                         spectrum=fwdfit.GaussianLine(NARROW_LAMBDA_A, 1e-3))
     return {"stack": stack, "narrow": narrow}
 
 
@@ -185,7 +185,7 @@ def test_critical_configuration_reflects(results):
 # --------------------------------------------------------------------------- thin layers
 
 
-THIN_LINE = {"wavelength_A": 4.0, "fwhm_rel": 0.15}
+THIN_LINE = fwdfit.GaussianLine(4.0, 0.15)
 THIN_GEOMETRY = dict(aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5)
 
 
@@ -196,10 +196,11 @@ def thin_layer_errors(tmp_path_factory):
     Returns {t: (rms, max |diff|, tracer noise RMS, peak model, peak tracer)}.
     """
     folder = tmp_path_factory.mktemp("thin")
-    lam, weight = gaussian_line_table(THIN_LINE["wavelength_A"], THIN_LINE["fwhm_rel"])
+    lam, weight = gaussian_line_table(THIN_LINE.wavelength_A, THIN_LINE.fwhm_rel)
     out = {}
     for t in (2.0, 20.0):
-        layers = [oxide_layer("ox", t, 3.518, 12.0), al_layer(), {"name": "ox_r", "same_as": "ox"}]
+        oxide = oxide_layer("ox", t, 3.518, 12.0)
+        layers = [oxide, al_layer(), oxide.tied("ox_r")]
         # The same grid for every t (one compilation): the left outer face +- 60 µm.
         scene = write_scene(folder, layers, name=f"thin{t:g}.toml",
                             profiles=[("d01.1mm", 1.1, -561.6, -441.6)], spectrum=THIN_LINE,

@@ -25,9 +25,9 @@ import pytest
 import tifffile
 
 import fwdfit
-from fwdfit._least_squares import levenberg_marquardt
+from fwdfit.inference import levenberg_marquardt
 from fwdfit.cli import main
-from helpers import gaussian_line_table, read_table, rms
+from helpers import gaussian_line_table, image_scene, read_table, rms
 
 AL = fwdfit.constants_from_formula("Al", 2.70)
 PIXEL_UM, SUB = 2.4, 8  # detector pixel, reference bins per pixel
@@ -35,43 +35,17 @@ N_ROWS, N_COLS, X0_UM = 40, 600, -720.0
 NOISE = 0.01
 OPEN_ROW, MASKED_ROW = 17, 25
 
-SCENE = """
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.15
-centre_um = 0.0
-
-[[sample.layers]]
-name = "Al"
-thickness_um = 1100.0
-material = "Al"
-density_g_cm3 = 2.70
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.l27]
-wavelength_A = 2.7
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "radiograph"
-distance_mm = 8.5
-spectrum = "l27"
-{data}
-
-[fit]
-vary = ["sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um",
-        "layers.Al.sld_e6_per_A2", "layers.Al.mu_per_m"]
-"""
+IMAGE_KEYS = 'image = "T.tif"\nx0_um = -720.0'
 
 
-def _scene(folder: Path, data: str = 'image = "T.tif"\nx0_um = -720.0') -> Path:
-    path = folder / "scene.toml"
-    path.write_text(SCENE.format(data=data))
+def _scene(folder: Path, data: str | None = None, *, image_err: bool = False, per_row=()) -> Path:
+    """``helpers.image_scene`` (start 1100 µm, T.tif from -720 µm; T_err.tif too if
+    ``image_err``) saved in ``folder``; ``data``: TOML lines that replace the image keys."""
+    scene = image_scene(folder / "T.tif", thickness_um=1100.0, x0_um=X0_UM, n_cols=N_COLS,
+                        image_err_file=folder / "T_err.tif" if image_err else None, per_row=per_row)
+    path = fwdfit.save_scene(scene, folder / "scene.toml")
+    if data is not None:
+        path.write_text(path.read_text().replace(IMAGE_KEYS, data))
     return path
 
 
@@ -201,7 +175,7 @@ def test_edge_centres_find_rows_and_flag_the_rest(tmp_path):
     an open-beam row has no edge (flag 1), a mostly masked row is flagged 2, and a row
     whose edges are 300 µm closer than the others' gets no centre (fitted from its
     neighbours) and no flag."""
-    from fwdfit._image_fit import FLAG_MASKED, FLAG_NO_EDGE, edge_centres
+    from fwdfit.images import FLAG_MASKED, FLAG_NO_EDGE, edge_centres
 
     x = X0_UM + PIXEL_UM * (np.arange(N_COLS) + 0.5)
     rng = np.random.default_rng(2)
@@ -237,11 +211,9 @@ def test_levenberg_marquardt_solves_independent_problems():
 
 def _image_folder(tmp_path: Path, image: np.ndarray, err: np.ndarray | None = None, data=None) -> Path:
     tifffile.imwrite(tmp_path / "T.tif", image.astype(np.float32))
-    lines = 'image = "T.tif"\nx0_um = -720.0'
     if err is not None:
         tifffile.imwrite(tmp_path / "T_err.tif", err.astype(np.float32))
-        lines += '\nimage_err = "T_err.tif"'
-    return _scene(tmp_path, lines if data is None else data)
+    return _scene(tmp_path, data, image_err=err is not None)
 
 
 def _run_fails(capsys, scene: Path, out: Path, *words: str) -> None:
@@ -308,8 +280,7 @@ def test_bad_per_row_parameters_are_refused(tmp_path, capsys, fit_lines, words):
 
 def test_fit_refuses_per_row(tmp_path, capsys):
     (tmp_path / "T.csv").write_text("x_um,T\n0,1\n2.4,1\n")
-    scene = _scene(tmp_path, 'file = "T.csv"')
-    scene.write_text(scene.read_text().replace("[fit]", '[fit]\nper_row = ["sample.tilt_deg"]'))
+    scene = _scene(tmp_path, 'file = "T.csv"', per_row=["sample.tilt_deg"])
     assert main(["fit", str(scene), "--out", str(tmp_path / "out"), "--quiet"]) == 1
     assert "fit.per_row" in capsys.readouterr().err
 
@@ -319,14 +290,13 @@ def test_fit_image_fits_a_norm_per_row(tmp_path):
     """The open beam's level changes by 2 % across the rows (norm per row, fit.per_row):
     each row's norm within 3 sigma and 0.002 of the truth, its centre within 1 µm. The
     image is the model itself at accuracy 1e-4 (the fit runs at 1e-3), 1 % noise."""
-    from fwdfit._parameters import assembler, free_parameters
-    from fwdfit._plan import build_model
-    from fwdfit._predict import Predictor
+    from fwdfit.inference import assembler, free_parameters
+    from fwdfit.model import build_model
+    from fwdfit.inference import Predictor
 
     n_rows = 24
     tifffile.imwrite(tmp_path / "T.tif", np.ones((n_rows, N_COLS), np.float32))
-    scene_path = _scene(tmp_path)
-    scene_path.write_text(scene_path.read_text().replace("[fit]", '[fit]\nper_row = ["profiles.radiograph.norm"]'))
+    scene_path = _scene(tmp_path, per_row=["profiles.radiograph.norm"])
     scene = fwdfit.load_scene(scene_path)
     row = dataclasses.replace(scene.profiles[0], image=None)
     truth_scene = dataclasses.replace(scene, profiles=(row,), fit=fwdfit.FitSpec(),

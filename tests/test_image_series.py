@@ -24,48 +24,17 @@ import pytest
 import tifffile
 
 import fwdfit
-from fwdfit._image_series import OUTPUT_FILES
+from fwdfit.images import OUTPUT_FILES
 from fwdfit.cli import main
-from helpers import gaussian_line_table
+from helpers import gaussian_line_table, image_scene
 
 AL = fwdfit.constants_from_formula("Al", 2.70)
 N_IMAGES, N_ROWS, N_COLS, PIXEL_UM, X0_UM = 8, 12, 300, 2.4, -360.0
 SHIFT_UM = 4.8  # image i is shifted by SHIFT_UM * i (two pixels: every image has the same sub-pixel pattern)
 NOISE = 0.003
 
-SCENE = """
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.15
-centre_um = 0.0
-
-[[sample.layers]]
-name = "Al"
-thickness_um = 450.0
-material = "Al"
-density_g_cm3 = 2.70
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.l27]
-wavelength_A = 2.7
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "radiograph"
-distance_mm = 8.5
-spectrum = "l27"
-image = "proj_000.tif"
-x0_um = -360.0
-
-[fit]
-vary = ["sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um",
-        "layers.Al.sld_e6_per_A2", "layers.Al.mu_per_m"]
-"""
+def series_scene(folder: Path):
+    return image_scene(folder / "proj_000.tif", thickness_um=450.0, x0_um=X0_UM, n_cols=N_COLS)
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +54,7 @@ def series(tmp_path_factory):
     images = reference.T.reshape(N_IMAGES, N_ROWS, N_COLS) + noise
     for i, image in enumerate(images):
         tifffile.imwrite(folder / f"proj_{i:03d}.tif", image.astype(np.float32))
-    (folder / "scene.toml").write_text(SCENE)
+    fwdfit.save_scene(series_scene(folder), folder / "scene.toml")
     return folder, reference.centres_um.reshape(N_IMAGES, N_ROWS)
 
 
@@ -217,15 +186,16 @@ def test_bad_input_is_one_line_and_writes_nothing(series, tmp_path, capsys):
     assert "--workers is for a local cluster" in _refused(
         capsys, ["fit-images", scene, image, "--out", str(out), "--workers", "2", "--scheduler", "tcp://x:1"], out)
     two = tmp_path / "two.toml"  # a scene that is not one image profile
-    two.write_text(SCENE.replace('image = "proj_000.tif"\nx0_um = -360.0', 'file = "missing.csv"'))
+    two.write_text(fwdfit.dump_scene(series_scene(tmp_path), tmp_path).replace(
+        'image = "proj_000.tif"\nx0_um = -360.0', 'file = "missing.csv"'))
     assert _refused(capsys, ["fit-images", str(two), image, "--out", str(out)], out)
     assert os.listdir(tmp_path) and not out.exists()
 
 
 def test_a_cluster_without_dask_installed_is_a_one_line_error(monkeypatch):
-    from fwdfit._errors import FwdfitError
-    from fwdfit._image_series import _local_client
+    from fwdfit import FwdfitError
+    from fwdfit.images import local_client
 
     monkeypatch.setitem(__import__("sys").modules, "distributed", None)
     with pytest.raises(FwdfitError, match=r"pip install 'fwdfit\[cluster\]'"):
-        _local_client(None, 2)
+        local_client(None, 2)

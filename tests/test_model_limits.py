@@ -16,15 +16,15 @@ import pytest
 
 import fwdfit
 from fwdfit import ReferenceLayer, trace_reference
-from helpers import (BOA_SPECTRUM, al_layer, boa_spectrum, central_difference, free_layer_parameters,
+from helpers import (al_layer, boa_spectrum, central_difference, free_layer_parameters,
                      oxide_layer, random_weights, replace_params, rms, spectrum_average_transmission,
                      stack_scene, straight_ray_profile, weighted_value, weighted_value_and_grad,
-                     write_scene)
+                     white_beam, write_scene)
 
 BOA = dict(aperture="square", aperture_mm=40.0, aperture_distance_m=7.5)
 ICON = dict(aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5)
-WHITE = {"file": str(BOA_SPECTRUM)}
-LINE = {"wavelength_A": 4.6, "fwhm_rel": 0.15}
+WHITE = white_beam()
+LINE = fwdfit.GaussianLine(4.6, 0.15)
 PIXEL_UM = 2.4
 
 
@@ -43,8 +43,7 @@ BL_PROFILES = [("d01.1mm", 1.1, -672.0, 672.0), ("d34.4mm", 34.4, -1200.0, 1200.
 @pytest.fixture(scope="module")
 def no_sld(tmp_path_factory):
     """(scene, {tilt_deg: (T list, T_att list)}) for an SLD = 0 block, BOA, tilts 0 and 0.5°."""
-    block = {"name": "B", "thickness_um": 1000.0, "sld_e6_per_A2": 0.0, "mu_per_m": MU0,
-             "mu_per_m_per_A": MU1}
+    block = fwdfit.Layer("B", 1000.0, 0.0, MU0, MU1)
     scene = write_scene(tmp_path_factory.mktemp("nosld"), [block], profiles=BL_PROFILES,
                         spectrum=WHITE, tilt_deg=0.5, **BOA)
     model, params = fwdfit.build_model(scene), fwdfit.initial_params(scene)
@@ -130,8 +129,7 @@ def test_tilted_beer_lambert_converges(tmp_path):
     """At accuracy 1e-5 the tilted no-refraction profile at 1.1 mm matches the brute-force
     straight-ray profile to 5e-5 (measured 1.6e-5; 1.0e-3 at the default 1e-3): the
     default's error is quadrature, not physics."""
-    block = {"name": "B", "thickness_um": 1000.0, "sld_e6_per_A2": 0.0, "mu_per_m": MU0,
-             "mu_per_m_per_A": MU1}
+    block = fwdfit.Layer("B", 1000.0, 0.0, MU0, MU1)
     scene = write_scene(tmp_path, [block], profiles=BL_PROFILES[:1], spectrum=WHITE,
                         tilt_deg=0.5, **BOA)
     (T,), _ = _run(fwdfit.build_model(scene, accuracy=1e-5), fwdfit.initial_params(scene))
@@ -161,9 +159,8 @@ def test_straight_ray_reference_agrees_with_tracer(no_sld):
 
 # --------------------------------------------------------------------------- conservation, symmetry
 
-OXIDE5 = [oxide_layer("o2", 80.0, 3.518, 12.0), oxide_layer("o1", 160.0, 3.304, 24.0),
-          al_layer(mu=1.39, mu_per_A=0.774), {"name": "o1r", "same_as": "o1"},
-          {"name": "o2r", "same_as": "o2"}]
+_O2, _O1 = oxide_layer("o2", 80.0, 3.518, 12.0), oxide_layer("o1", 160.0, 3.304, 24.0)
+OXIDE5 = [_O2, _O1, al_layer(mu=1.39, mu_per_A=0.774), _O1.tied("o1r"), _O2.tied("o2r")]
 WIDE = [("wide", 34.4, -1500.0, 1500.0)]  # holds every deflected ray up to 34.4 mm
 SETUPS = {
     "boa_al": ([al_layer(mu=9.059, mu_per_A=0.774)], WHITE, BOA),

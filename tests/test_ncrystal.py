@@ -13,11 +13,13 @@ import pytest
 
 NCrystal = pytest.importorskip("NCrystal")
 
-from fwdfit._fit_output import scene_toml  # noqa: E402
-from fwdfit._plan import build_model  # noqa: E402
-from fwdfit._reference import ReferenceLayer, trace_reference  # noqa: E402
-from fwdfit._scene import load_scene  # noqa: E402
-from fwdfit._spectrum import BandSpectrum, wavelength_quadrature  # noqa: E402
+import fwdfit  # noqa: E402
+from fwdfit import save_scene  # noqa: E402
+from fwdfit.model import build_model  # noqa: E402
+from fwdfit.reference import ReferenceLayer, trace_reference  # noqa: E402
+from fwdfit.scene import load_scene  # noqa: E402
+from fwdfit.model import wavelength_quadrature
+from fwdfit.scene import BandSpectrum  # noqa: E402
 from fwdfit.cli import main  # noqa: E402
 from helpers import read_table, rms  # noqa: E402
 
@@ -32,50 +34,23 @@ def _ncrystal_mu_per_m(cfg: str, lam: np.ndarray) -> np.ndarray:
     return 100.0 * material.info.numberdensity * np.asarray(barn)  # barn / Å^3 = 1/cm
 
 
-SCENE = """
-[sample]
-depth_mm = {depth_mm}
-tilt_deg = 0.24
-
-[[sample.layers]]
-name = "Al"
-thickness_um = 1000
-ncrystal = "{cfg}"
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.white]
-lambda_min_A = 3.0
-lambda_max_A = 6.0
-
-[spectra.line]
-wavelength_A = 4.7
-fwhm_rel = 0.03
-
-[[profiles]]
-name = "white"
-distance_mm = {distance_mm}
-spectrum = "white"
-x_min_um = -676.8
-x_max_um = 676.8
-
-[[profiles]]
-name = "line"
-distance_mm = {distance_mm}
-spectrum = "line"
-x_min_um = -676.8
-x_max_um = 676.8
-"""
+def _block(cfg: str, thickness_um: float, tilt_deg: float, depth_mm: float = 2.0, density_scale: float = 1.0,
+           **instrument) -> dict:
+    """Scene fields of an NCrystal Al block, circular aperture (40 mm at 5.5 m unless given)."""
+    layer = fwdfit.Layer.from_material("Al", thickness_um, fwdfit.constants_from_ncrystal(cfg), density_scale)
+    instrument = {"aperture_mm": 40.0, "aperture_distance_m": 5.5, **instrument}
+    return {"sample": fwdfit.Sample(depth_mm=depth_mm, tilt_deg=tilt_deg, centre_um=0.0, layers=(layer,)),
+            "instruments": {"": fwdfit.Instrument("circular", pixel_um=2.4, **instrument)}}
 
 
-def _scene(tmp_path, cfg=AL, depth_mm=2.0, name="scene.toml"):
-    path = tmp_path / name
-    path.write_text(SCENE.format(cfg=cfg, depth_mm=depth_mm, distance_mm=0.5 * depth_mm + 4.0))
-    return path
+def _scene(tmp_path, cfg=AL, depth_mm=2.0, name="scene.toml", density_scale=1.0):
+    """The block at ``depth_mm / 2 + 4`` mm: a 3-6 Å band ``white`` and a 4.7 Å line ``line``."""
+    x_um = fwdfit.pixel_grid(-676.8, 676.8, 2.4)
+    scene = fwdfit.Scene(**_block(cfg, 1000.0, 0.24, depth_mm, density_scale),
+                         spectra={"white": fwdfit.BandSpectrum(3.0, 6.0), "line": fwdfit.GaussianLine(4.7, 0.03)},
+                         profiles=tuple(fwdfit.Profile(name, 0.5 * depth_mm + 4.0, name, "", x_um)
+                                        for name in ("white", "line")))
+    return fwdfit.save_scene(scene, tmp_path / name)
 
 
 @pytest.mark.parametrize("cfg", [AL, AL + ";temp=200K", AL + ";density=0.9x"])
@@ -162,7 +137,8 @@ def test_simulate_matches_exact_tracer_across_the_edge(tmp_path):
 
 
 def test_unknown_ncrystal_file_is_one_line_error(tmp_path, capsys):
-    path, out = _scene(tmp_path, "NoSuchMaterial.ncmat"), tmp_path / "out"
+    path, out = _scene(tmp_path), tmp_path / "out"
+    path.write_text(path.read_text().replace(AL, "NoSuchMaterial.ncmat"))
     assert main(["simulate", str(path), "--out", str(out)]) == 1
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and "sample.layers[0].ncrystal" in lines[0] and "NoSuchMaterial" in lines[0]
@@ -192,9 +168,7 @@ def test_written_scene_keeps_ncrystal_and_band(tmp_path):
     """The fitted-scene writer keeps the layer's cfg and the band: the scene reads back with
     the same SLD, mu(lambda) and spectra."""
     scene = load_scene(_scene(tmp_path, AL + ";temp=200K"))
-    again_path = tmp_path / "again.toml"
-    again_path.write_text(scene_toml(scene, tmp_path))
-    again = load_scene(again_path)
+    again = load_scene(save_scene(scene, tmp_path / "again.toml"))
     assert again.spectra["white"] == scene.spectra["white"]
     layer, other = scene.sample.layers[0], again.sample.layers[0]
     assert other.material.ncrystal_cfg == AL + ";temp=200K"
@@ -208,36 +182,14 @@ def test_written_scene_keeps_ncrystal_and_band(tmp_path):
 def test_density_scale_is_ncrystal_density_scaling(tmp_path):
     """A layer's ``density_scale = 0.9`` gives the profiles of NCrystal's own ``density=0.9x``
     (which scales the number density, hence SLD and every cross-section term)."""
-    import fwdfit
-
-    scaled = _scene(tmp_path)
-    scaled.write_text(scaled.read_text().replace(f'ncrystal = "{AL}"', f'ncrystal = "{AL}"\ndensity_scale = 0.9'))
+    scaled = _scene(tmp_path, density_scale=0.9)
     by_ncrystal = _scene(tmp_path, AL + ";density=0.9x", name="n.toml")
     for a, b in zip(fwdfit.simulate(scaled), fwdfit.simulate(by_ncrystal)):
         np.testing.assert_allclose(a.T, b.T, atol=2e-6)  # without the scale they differ by 1e-3
         np.testing.assert_allclose(a.T_att, b.T_att, atol=2e-6)
 
 
-TOF_SCENE = """
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.3
-centre_um = 0.0
-
-[[sample.layers]]
-name = "Al"
-thickness_um = 1020.0
-ncrystal = "Al_sg225.ncmat"
-
-[instrument]
-aperture = "circular"
-aperture_mm = 20.0
-aperture_distance_m = 10.0
-pixel_um = 2.4
-
-[fit]
-vary = ["layers.Al.thickness_um", "sample.tilt_deg", "sample.centre_um", "layers.Al.density_scale"]
-"""
+TOF_VARY = ("layers.Al.thickness_um", "sample.tilt_deg", "sample.centre_um", "layers.Al.density_scale")
 TOF_TRUTH = {"layers.Al.thickness_um": 1000.0, "sample.tilt_deg": 0.24, "sample.centre_um": 3.0,
              "layers.Al.density_scale": 0.97}
 
@@ -257,7 +209,7 @@ def test_time_of_flight_fit_recovers_the_block(tmp_path):
     x_um = np.arange(-660.0, 660.0, 2.4) + 1.2
     edges_um = np.append(x_um - 1.2, x_um[-1] + 1.2)
     bins = np.linspace(3.0, 6.0, 25)
-    parts, att = [TOF_SCENE], {}
+    spectra, profiles, att = {}, [], {}
     rng = np.random.default_rng(7)
     for i, (lo, hi) in enumerate(zip(bins[:-1], bins[1:])):
         name = f"b{i:02d}"
@@ -270,13 +222,11 @@ def test_time_of_flight_fit_recovers_the_block(tmp_path):
         T = reference.T + 0.01 * rng.standard_normal(x_um.size)
         np.savetxt(tmp_path / f"{name}.csv", np.column_stack([x_um, T, np.full(x_um.size, 0.01)]),
                    delimiter=",", header="x_um,T,T_err", comments="")
-        parts.append(f'[spectra.{name}]\nlambda_min_A = {lo}\nlambda_max_A = {hi}\n\n'
-                     f'[[profiles]]\nname = "{name}"\ndistance_mm = 5.0\nspectrum = "{name}"\n'
-                     f'file = "{name}.csv"\n')
-    path = tmp_path / "tof.toml"
-    path.write_text("\n".join(parts))
-    import fwdfit
-
+        spectra[name] = fwdfit.BandSpectrum(float(lo), float(hi))
+        profiles.append(fwdfit.Profile(name, 5.0, name, "", x_um, file=tmp_path / f"{name}.csv"))
+    scene = fwdfit.Scene(**_block(AL, 1020.0, 0.3, aperture_mm=20.0, aperture_distance_m=10.0), spectra=spectra,
+                         profiles=tuple(profiles), fit=fwdfit.FitSpec(TOF_VARY))
+    path = fwdfit.save_scene(scene, tmp_path / "tof.toml")
     result = fwdfit.fit(path)
     fitted = dict(zip(result.names, result.values))
     errors = dict(zip(result.names, result.errors))

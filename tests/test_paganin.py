@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from fwdfit._errors import FwdfitError
-from fwdfit._paganin import (
+from fwdfit import FwdfitError
+from fwdfit.paganin import (
     paganin_filter_1d,
     paganin_filter_2d,
     paganin_tau_um2,

@@ -1,5 +1,6 @@
 """``fwdfit paganin``: the filter on every measured profile of a scene, tau by hand, bad input."""
 
+import dataclasses
 import math
 import re
 import shutil
@@ -9,11 +10,12 @@ import jax
 import numpy as np
 import pytest
 
+import fwdfit
 from fwdfit import load_scene, simulate
-from fwdfit._errors import FwdfitError
-from fwdfit._paganin import paganin_filter_1d
-from fwdfit._paganin_scene import paganin_layer, paganin_profiles
-from fwdfit._tables import read_columns, write_columns
+from fwdfit import FwdfitError
+from fwdfit.paganin import paganin_filter_1d
+from fwdfit.paganin import paganin_layer, paganin_profiles
+from fwdfit.scene import read_columns, write_columns
 from fwdfit.cli import main
 
 jax.config.update("jax_enable_x64", True)
@@ -25,49 +27,38 @@ PIXEL_UM = 2.4
 D_OVER_L = 0.040 / 7.5  # BOA, rad
 AL_SLD = 2.078e-6  # Å^-2, as in the scene
 AL_MU = 1.39  # 1/m
-COAT = '''
-[[sample.layers]]
-name = "coat"
-thickness_um = 100
-sld_e6_per_A2 = 3.3
-mu_per_m = 20.0
-mu_per_m_per_A = 1.5
-'''
+COAT = fwdfit.Layer("coat", 100.0, 3.3, 20.0, 1.5)
 
 
-def _scene_text(measured: bool, *, layers_extra: str = "", aperture_distance_m: float = 7.5) -> str:
-    """The al_boa_tilt0 scene with our two profiles, measured (file =) or simulated."""
-    text = (CASE / "scene.toml").read_text()
-    text = text[:text.index("[[profiles]]")]
-    text = text.replace("aperture_distance_m = 7.5", f"aperture_distance_m = {aperture_distance_m}")
-    text = text.replace("[instrument]", layers_extra + "\n[instrument]")
-    for name, distance in DISTANCES_MM.items():
-        grid = (f'file = "{name}.csv"' if measured
-                else f"x_min_um = {-HALF_WIDTH_UM}\nx_max_um = {HALF_WIDTH_UM}")
-        text += (f'[[profiles]]\nname = "{name}"\ndistance_mm = {distance}\n'
-                 f'spectrum = "white"\n{grid}\n\n')
-    return text
+def _scene(folder: Path, measured: bool, *, layers_extra=(), aperture_distance_m: float = 7.5,
+           profiles_extra=()) -> fwdfit.Scene:
+    """The al_boa_tilt0 scene with our two profiles, measured (read from ``folder``) or simulated."""
+    base = load_scene(CASE / "scene.toml")
+    profiles = tuple(fwdfit.Profile(name, distance, "white", "", fwdfit.pixel_grid(-HALF_WIDTH_UM, HALF_WIDTH_UM, PIXEL_UM),
+                                    file=folder / f"{name}.csv" if measured else None)
+                     for name, distance in DISTANCES_MM.items())
+    return dataclasses.replace(
+        base, sample=dataclasses.replace(base.sample, layers=base.sample.layers + tuple(layers_extra)),
+        instruments={name: dataclasses.replace(instrument, aperture_distance_m=aperture_distance_m)
+                     for name, instrument in base.instruments.items()},
+        profiles=profiles + tuple(profiles_extra))
 
 
 @pytest.fixture(scope="module")
 def measured_dir(tmp_path_factory):
     """A folder with the simulated scene, its 'measured' profiles and the measured scene."""
     folder = tmp_path_factory.mktemp("al_measured")
-    shutil.copy(CASE / "spectrum_boa.csv", folder)
-    (folder / "simulated.toml").write_text(_scene_text(False))
-    for p in simulate(folder / "simulated.toml"):
+    for p in simulate(_scene(folder, False)):
         write_columns(folder / f"{p.name}.csv", {"x_um": p.x_um, "T": p.T})
-    (folder / "scene.toml").write_text(_scene_text(True))
+    fwdfit.save_scene(_scene(folder, True), folder / "scene.toml")
     return folder
 
 
-def _variant(measured_dir, tmp_path, **options) -> Path:
-    """A copy of the measured scene in tmp_path, with options passed to _scene_text."""
-    for name in [*DISTANCES_MM, "spectrum_boa"]:
+def _variant(measured_dir, tmp_path, measured: bool = True, **options) -> Path:
+    """A copy of the measured scene in tmp_path, with options passed to ``_scene``."""
+    for name in DISTANCES_MM:
         shutil.copy(measured_dir / f"{name}.csv", tmp_path)
-    path = tmp_path / "variant.toml"
-    path.write_text(_scene_text(options.pop("measured", True), **options))
-    return path
+    return fwdfit.save_scene(_scene(tmp_path, measured, **options), tmp_path / "variant.toml")
 
 
 def _mean_wavelength_A() -> float:
@@ -115,7 +106,7 @@ def test_cli_writes_filtered_profiles_with_tau_by_hand(measured_dir, tmp_path, c
 
 
 def test_material_and_mode(measured_dir, tmp_path):
-    scene = load_scene(_variant(measured_dir, tmp_path, layers_extra=COAT))
+    scene = load_scene(_variant(measured_dir, tmp_path, layers_extra=[COAT]))
     assert paganin_layer(scene).name == "Al"
     lam = _mean_wavelength_A()
     profiles = paganin_profiles(scene, material="coat")
@@ -155,10 +146,8 @@ def test_bad_input_exits_1_with_one_line_and_writes_nothing(measured_dir, tmp_pa
 
 
 def test_a_later_simulation_only_profile_stops_everything(measured_dir, tmp_path, capsys):
-    scene = _variant(measured_dir, tmp_path)
-    text = scene.read_text()
-    scene.write_text(text + '[[profiles]]\nname = "sim"\ndistance_mm = 4.8\nspectrum = "white"\n'
-                            'x_min_um = -600.0\nx_max_um = 600.0\n')
+    sim = fwdfit.Profile("sim", 4.8, "white", "", fwdfit.pixel_grid(-600.0, 600.0, PIXEL_UM))
+    scene = _variant(measured_dir, tmp_path, profiles_extra=[sim])
     out = tmp_path / "out"
     assert main(["paganin", str(scene), "--out", str(out)]) == 1
     assert "profile sim has no measured T (file =)" in capsys.readouterr().err

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from fwdfit._errors import FwdfitError
-from fwdfit._profile_cli import add_profile_parser
-from fwdfit._radiograph import (
+from fwdfit import FwdfitError
+from fwdfit.cli import add_profile_parser
+from fwdfit.images import (
     Roi,
     clipped_mean_frames,
     combine_frames,

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fwdfit._reference import ReferenceLayer, trace_reference
+from fwdfit.reference import ReferenceLayer, trace_reference
 
 DATA = Path(__file__).parent / "data"
 PIXEL_UM = 2.4

@@ -18,9 +18,10 @@ import numpy as np
 import pytest
 
 import fwdfit
-from fwdfit._parameters import FreeParameter
-from fwdfit._sample import _diagnostics, blackjax_module
+from fwdfit.inference import FreeParameter
+from fwdfit.inference import blackjax_module, diagnostics
 from fwdfit.cli import main
+from helpers import small_scene
 
 pytest.importorskip("blackjax")
 
@@ -28,31 +29,19 @@ NOISE = 0.01
 TRUTH = {"sample.centre_um": 2.0, "layers.Al.thickness_um": 1000.0, "layers.Al.sld_e6_per_A2": 2.078}
 
 
-def _scene_text(profile: str, fit: str) -> str:
-    return ("[sample]\ndepth_mm = 2.0\ntilt_deg = 0.0\ncentre_um = 2.0\n\n"
-            '[[sample.layers]]\nname = "Al"\nthickness_um = 1000.0\nsld_e6_per_A2 = 2.078\n'
-            "mu_per_m = 9.06\nmu_per_m_per_A = 0.774\n\n"
-            '[instrument]\naperture = "circular"\naperture_mm = 40.0\naperture_distance_m = 5.5\n'
-            "pixel_um = 2.4\n\n[spectra.l46]\nwavelength_A = 4.6\nfwhm_rel = 0.15\n\n"
-            f'[[profiles]]\nname = "line"\ndistance_mm = 1.1\nspectrum = "l46"\n{profile}\n\n'
-            + fit)
-
-
-FIT = ('[fit]\nvary = ["sample.centre_um", "layers.Al.thickness_um", "layers.Al.sld_e6_per_A2"]\n'
-       'bounds."layers.Al.thickness_um" = [900.0, 1100.0]\n')
+VARY = ("sample.centre_um", "layers.Al.thickness_um", "layers.Al.sld_e6_per_A2")
+BOUNDS = {"layers.Al.thickness_um": (900.0, 1100.0)}
 
 
 @pytest.fixture(scope="module")
 def scene_path(tmp_path_factory):
     folder = tmp_path_factory.mktemp("sample")
-    truth = folder / "truth.toml"
-    truth.write_text(_scene_text("x_min_um = -600.0\nx_max_um = 600.0", ""))
-    simulated = fwdfit.simulate(truth)[0]
+    simulated = fwdfit.simulate(small_scene(TRUTH))[0]
     T = simulated.T + np.random.default_rng(3).normal(0.0, NOISE, simulated.T.shape)
     np.savetxt(folder / "line.csv", np.column_stack([simulated.x_um, T, np.full_like(T, NOISE)]),
                delimiter=",", header="x_um,T,T_err", comments="", fmt="%.9g")
-    (folder / "scene.toml").write_text(_scene_text('file = "line.csv"', FIT))
-    return folder / "scene.toml"
+    return fwdfit.save_scene(small_scene(TRUTH, file=folder / "line.csv", vary=VARY, bounds=BOUNDS),
+                             folder / "scene.toml")
 
 
 @pytest.fixture(scope="module")
@@ -131,8 +120,7 @@ def test_bad_sampling_options_are_one_line_errors(scene_path, tmp_path, capsys, 
 
 
 def test_sampling_a_scene_without_data_is_one_line_error(scene_path, tmp_path, capsys):
-    scene = tmp_path / "scene.toml"
-    scene.write_text(_scene_text("x_min_um = -600.0\nx_max_um = 600.0", FIT))
+    scene = fwdfit.save_scene(small_scene(TRUTH, vary=VARY, bounds=BOUNDS), tmp_path / "scene.toml")
     out = tmp_path / "out"
     assert main(["fit", str(scene), "--out", str(out), "--quiet", "--sample", "10"]) == 1
     err = capsys.readouterr().err.strip()
@@ -147,9 +135,9 @@ def test_diagnostics_of_independent_and_correlated_draws():
     draws, r = rng.normal(size=(4, 2000, 2)), 0.8
     for t in range(1, draws.shape[1]):
         draws[:, t, 1] = r * draws[:, t - 1, 1] + draws[:, t, 1]
-    ess, rhat = _diagnostics(blackjax_module(), draws)
+    ess, rhat = diagnostics(blackjax_module(), draws)
     assert abs(ess[0] / 8000 - 1) < 0.3, ess  # the estimator's own scatter is ~10 %
     assert abs(ess[1] / (8000 * (1 - r) / (1 + r)) - 1) < 0.3, ess
     assert np.all(np.abs(rhat - 1) < 0.01), rhat
-    ess, rhat = _diagnostics(blackjax_module(), draws[:1, :3])
+    ess, rhat = diagnostics(blackjax_module(), draws[:1, :3])
     assert np.all(np.isnan(ess)) and np.all(np.isnan(rhat))

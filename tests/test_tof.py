@@ -14,10 +14,7 @@ from astropy.io import fits
 
 from fwdfit.cli import main
 
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+import tomllib
 
 H_OVER_MN = 3956.034  # m Å / s, the de Broglie constant the command must use
 N_BINS, N_ROWS, N_COLS = 12, 40, 32

@@ -3,12 +3,13 @@ nothing written; Ctrl-C in ``fwdfit: interrupted``, exit 130 and nothing written
 
 Everything runs ``fwdfit.cli.main`` in-process and fails before the model compiles (or
 replaces the model by a stub), so the file runs in seconds; only the XLA-log check starts
-a process. The validity domain is docs/SCENE.md's; its limits live in ``fwdfit._limits``.
+a process. The validity domain is docs/SCENE.md's; its limits are ``fwdfit.scene.DOMAIN``.
 """
 
 from __future__ import annotations
 
 import ast
+import dataclasses
 import importlib.metadata
 import os
 import stat
@@ -26,41 +27,19 @@ import fwdfit
 import fwdfit._fit_output
 import fwdfit._profile_cli
 import fwdfit._simulate
-from fwdfit._limits import DOMAIN, MAX_TILT_DEG
+from fwdfit.scene import DOMAIN, MAX_TILT_DEG
 from fwdfit.cli import main
 
 REPOSITORY = Path(__file__).resolve().parents[1]  # the checkout, whether fwdfit is installed from it or not
 SRC = REPOSITORY / "src" / "fwdfit"
 PYPROJECT = REPOSITORY / "pyproject.toml"
 
-SCENE = """\
-[sample]
-depth_mm = 2.0
-tilt_deg = 0.24
-
-[[sample.layers]]
-name = "Al"
-thickness_um = 60.0
-sld_e6_per_A2 = 2.078
-mu_per_m = 1.39
-
-[instrument]
-aperture = "circular"
-aperture_mm = 40.0
-aperture_distance_m = 5.5
-pixel_um = 2.4
-
-[spectra.line]
-wavelength_A = 2.7
-fwhm_rel = 0.15
-
-[[profiles]]
-name = "near"
-distance_mm = 1.1
-spectrum = "line"
-x_min_um = -48.0
-x_max_um = 48.0
-"""
+SCENE = fwdfit.dump_scene(fwdfit.Scene(
+    sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.24, centre_um=0.0,
+                         layers=(fwdfit.Layer("Al", 60.0, 2.078, 1.39),)),
+    instruments={"": fwdfit.Instrument("circular", 40.0, 5.5, 2.4)},
+    spectra={"line": fwdfit.GaussianLine(2.7, 0.15)},
+    profiles=(fwdfit.Profile("near", 1.1, "line", "", fwdfit.pixel_grid(-48.0, 48.0, 2.4)),)))
 
 
 def _edit(text: str, old: str, new: str) -> str:
@@ -141,12 +120,16 @@ def test_out_of_domain_scene_is_one_line(scene, tmp_path, capsys, case):
     assert not out.exists() and leftovers(tmp_path) == []
 
 
-def test_tilt_limit_is_the_fit_bound():
-    """One constant: the domain's tilt limit is the default bound of a free tilt."""
-    import fwdfit._plan
+def test_tilt_limit_is_the_fit_bound(scene):
+    """One constant: the domain's tilt limit bounds a free tilt (widened from 1° to twice
+    a larger start, at most the limit)."""
+    from fwdfit.inference import free_parameters
 
-    assert fwdfit._plan.MAX_TILT_DEG is MAX_TILT_DEG
     assert DOMAIN["tilt_deg"] == (-MAX_TILT_DEG, MAX_TILT_DEG)
+    tilted = dataclasses.replace(fwdfit.load_scene(scene), sample=dataclasses.replace(
+        fwdfit.load_scene(scene).sample, tilt_deg=0.8 * MAX_TILT_DEG))
+    tilt, = free_parameters(tilted, vary=["sample.tilt_deg"])
+    assert (tilt.low, tilt.high) == (-MAX_TILT_DEG, MAX_TILT_DEG)
 
 
 def test_measured_counts_are_not_a_transmission(scene, tmp_path, capsys):
@@ -295,9 +278,9 @@ def _unreachable(*args, **kwargs):
 def test_out_existing_file_is_refused_first(scene, tmp_path, capsys, monkeypatch, command):
     """--out naming a regular file is refused before any model work (before: after the
     whole fit, as a raw errno with a temporary folder's name)."""
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _unreachable)
-    monkeypatch.setattr("fwdfit._fit.fit", _unreachable)
-    monkeypatch.setattr("fwdfit._paganin_scene.paganin_profiles", _unreachable)
+    monkeypatch.setattr("fwdfit.simulate", _unreachable)
+    monkeypatch.setattr("fwdfit.Fitter", _unreachable)
+    monkeypatch.setattr("fwdfit.paganin.paganin_profiles", _unreachable)
     blocker = tmp_path / "result.txt"
     blocker.write_text("keep me\n")
     assert main([command, str(scene), "--out", str(blocker)]) == 1
@@ -311,7 +294,7 @@ def test_out_existing_file_is_refused_first(scene, tmp_path, capsys, monkeypatch
 @pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0,
                     reason="needs POSIX permissions that bind (root writes anywhere)")
 def test_out_in_unwritable_folder_is_refused_first(scene, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _unreachable)
+    monkeypatch.setattr("fwdfit.simulate", _unreachable)
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(0o555)
@@ -324,7 +307,7 @@ def test_out_in_unwritable_folder_is_refused_first(scene, tmp_path, capsys, monk
 
 
 def test_missing_scene_is_refused_first(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("fwdfit._fit.fit", _unreachable)
+    monkeypatch.setattr("fwdfit.Fitter", _unreachable)
     assert main(["fit", str(tmp_path / "nowhere.toml"), "--out", str(tmp_path / "out")]) == 1
     assert "nowhere.toml: file not found" in one_error_line(capsys)
 
@@ -340,7 +323,7 @@ def _fake_simulate(scene, accuracy=None):
 def test_ctrl_c_prints_one_line_and_leaves_nothing(scene, tmp_path, capsys, monkeypatch):
     """Ctrl-C while the second file is written: 'fwdfit: interrupted', exit 130, no output
     folder and no temporary files (before: a 50-line KeyboardInterrupt traceback)."""
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _fake_simulate)
+    monkeypatch.setattr("fwdfit.simulate", _fake_simulate)
     real_write = fwdfit._simulate.write_columns
     calls = []
 
@@ -360,7 +343,7 @@ def test_ctrl_c_prints_one_line_and_leaves_nothing(scene, tmp_path, capsys, monk
 @pytest.mark.parametrize("umask", [0o022, 0o027])
 def test_written_csvs_follow_the_umask(scene, tmp_path, monkeypatch, umask):
     """Result CSVs get 0666 less the umask like any file (before: 0600 from mkstemp)."""
-    monkeypatch.setattr(fwdfit._simulate, "simulate", _fake_simulate)
+    monkeypatch.setattr("fwdfit.simulate", _fake_simulate)
     old = os.umask(umask)
     try:
         assert main(["simulate", str(scene), "--out", str(tmp_path / "out")]) == 0
@@ -476,10 +459,7 @@ def test_plot_profile_leaves_the_backend_alone(tmp_path):
 def test_every_imported_package_is_declared():
     """Every third-party module imported at the top of a fwdfit module is a declared
     dependency (jaxtyping was imported but not declared)."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:
-        import tomli as tomllib
+    import tomllib
     project = tomllib.loads(PYPROJECT.read_text())["project"]
     declared = {req.split(";")[0].split(">")[0].split("=")[0].split("<")[0].strip().lower()
                 for req in project["dependencies"]}

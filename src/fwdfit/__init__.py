@@ -1,6 +1,7 @@
 """fwdfit: differentiable forward-model fitting of refraction at interfaces in neutron radiographs.
 
-The flow: scene file -> ``load_scene`` -> ``build_model`` + ``initial_params`` ->
+The flow: scene file -> ``load_scene`` (or a ``Scene`` built in Python; ``dump_scene``
+writes one) -> ``build_model`` + ``initial_params`` ->
 ``ForwardModel(params)`` gives (T, T_att) per profile -> ``fit`` -> result.
 """
 
@@ -10,13 +11,13 @@ from ._fit import FitResult as FitResult
 from ._fit import FittedProfile as FittedProfile
 from ._fit import Fitter as Fitter
 from ._fit import fit as fit
-from ._fit_output import scene_toml as scene_toml
 from ._fit_output import write_fit as write_fit
 from ._image_fit import ImageFit as ImageFit
 from ._image_fit import fit_image as fit_image
 from ._image_output import write_image_fit as write_image_fit
 from ._materials import MaterialConstants as MaterialConstants
 from ._materials import constants_from_formula as constants_from_formula
+from ._materials import constants_from_ncrystal as constants_from_ncrystal
 from ._model import ForwardModel as ForwardModel
 from ._model import ModelParams as ModelParams
 from ._paganin import paganin_filter_1d as paganin_filter_1d
@@ -39,6 +40,12 @@ from ._scene import Profile as Profile
 from ._scene import Sample as Sample
 from ._scene import Scene as Scene
 from ._scene import load_scene as load_scene
+from ._scene import pixel_grid as pixel_grid
+from ._scene_toml import dump_scene as dump_scene
+from ._scene_toml import save_scene as save_scene
+from ._spectrum import BandSpectrum as BandSpectrum
+from ._spectrum import GaussianLine as GaussianLine
+from ._spectrum import TabulatedSpectrum as TabulatedSpectrum
 from ._simulate import SimulatedProfile as SimulatedProfile
 from ._simulate import simulate as simulate
 

@@ -24,6 +24,7 @@ import warnings
 import jax
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._least_squares import levenberg_marquardt
 from ._parameters import LAYER_FIELDS, FreeParameter, assembler, free_parameters
@@ -431,7 +432,7 @@ def _fitted_scene(scene: Scene, free: tuple[FreeParameter, ...], values) -> Scen
         if key in LAYER_FIELDS:
             for i in index:
                 layers[i] = dataclasses.replace(layers[i], **{key: float(value)})
-        elif key in ("distance_mm", "shift_um", "norm", "background"):
+        elif registry.BY_KEY[key].part == "profiles":
             profiles[index[0]] = dataclasses.replace(profiles[index[0]], **{key: float(value)})
         else:
             sample_updates[key] = float(value)

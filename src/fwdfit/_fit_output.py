@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import json
-import math
-import os
 import platform
 from pathlib import Path
 
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._fit import FitResult
-from ._scene import Scene
-from ._spectrum import BandSpectrum, GaussianLine
+from ._scene_toml import dump_scene
 from ._tables import staged_folder, write_columns
 
 
@@ -26,7 +24,7 @@ def result_dict(result: FitResult) -> dict:
     from . import __version__
 
     return {
-        "parameters": {name: {"value": float(v), "error": float(e)}
+        "parameters": {name: {"value": float(v), "error": float(e), "unit": registry.unit(name)}
                        for name, v, e in zip(result.names, result.values, result.errors)},
         "correlation": {"names": list(result.names), "matrix": np.round(result.correlation, 6).tolist()},
         "chi2": result.chi2,
@@ -91,78 +89,6 @@ def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
     fig.savefig(path, dpi=100)
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return repr(float(value))
-
-
-def scene_toml(scene: Scene, relative_to: Path) -> str:
-    """A scene as TOML text (explicit material constants, an NCrystal layer's cfg kept for its
-    mu(lambda); file paths relative to ``relative_to``)."""
-    def rel(path: Path) -> str:
-        return os.path.relpath(Path(path).resolve(), relative_to.resolve())
-
-    lines = ["# written by fwdfit", "[sample]"]
-    s = scene.sample
-    lines += [f"depth_mm = {_toml_value(s.depth_mm)}", f"tilt_deg = {_toml_value(s.tilt_deg)}",
-              f"centre_um = {_toml_value(s.centre_um)}", f"drift_um_per_mm = {_toml_value(s.drift_um_per_mm)}"]
-    for layer in s.layers:
-        lines += ["", "[[sample.layers]]", f"name = {_toml_value(layer.name)}"]
-        if layer.same_as:
-            lines.append(f"same_as = {_toml_value(layer.same_as)}")
-            continue
-        if layer.material is not None and layer.material.ncrystal_cfg:  # mu(lambda) is NCrystal's
-            lines.append(f"ncrystal = {_toml_value(layer.material.ncrystal_cfg)}")
-        for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A"):
-            if not math.isnan(getattr(layer, key)):  # NaN: a start left to the fit
-                lines.append(f"{key} = {_toml_value(getattr(layer, key))}")
-        if layer.density_scale != 1.0:
-            lines.append(f"density_scale = {_toml_value(layer.density_scale)}")
-    for name, inst in scene.instruments.items():
-        lines += ["", "[instrument]" if name == "" else f"[instruments.{json.dumps(name)}]"]
-        for key in ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel"):
-            lines.append(f"{key} = {_toml_value(getattr(inst, key))}")
-    for name, spectrum in scene.spectra.items():
-        lines += ["", f"[spectra.{json.dumps(name)}]"]
-        if isinstance(spectrum, GaussianLine):
-            lines += [f"wavelength_A = {_toml_value(spectrum.wavelength_A)}",
-                      f"fwhm_rel = {_toml_value(spectrum.fwhm_rel)}"]
-            continue
-        if isinstance(spectrum, BandSpectrum):
-            lines += [f"lambda_min_A = {_toml_value(spectrum.lambda_min_A)}",
-                      f"lambda_max_A = {_toml_value(spectrum.lambda_max_A)}"]
-            spectrum = spectrum.table
-        if spectrum is not None:
-            lines.append(f"file = {_toml_value(rel(spectrum.path))}")
-    for p in scene.profiles:
-        lines += ["", "[[profiles]]", f"name = {_toml_value(p.name)}",
-                  f"distance_mm = {_toml_value(p.distance_mm)}", f"spectrum = {_toml_value(p.spectrum)}"]
-        if p.instrument:
-            lines.append(f"instrument = {_toml_value(p.instrument)}")
-        if p.file is not None:
-            lines.append(f"file = {_toml_value(rel(p.file))}")
-        else:
-            pixel = scene.instruments[p.instrument].pixel_um
-            lines += [f"x_min_um = {_toml_value(p.x_um[0] - 0.5 * pixel)}",
-                      f"x_max_um = {_toml_value(p.x_um[-1] + 0.5 * pixel)}"]
-        lines += [f"shift_um = {_toml_value(p.shift_um)}", f"norm = {_toml_value(p.norm)}",
-                  f"background = {_toml_value(p.background)}"]
-    if scene.fit.vary:
-        lines += ["", "[fit]", f"vary = {_toml_value(list(scene.fit.vary))}"]
-        for name, (low, high) in scene.fit.bounds.items():
-            lines.append(f"bounds.{json.dumps(name)} = [{_toml_value(low)}, {_toml_value(high)}]")
-        if scene.fit.per_row:
-            lines.append(f"per_row = {_toml_value(list(scene.fit.per_row))}")
-    if not math.isclose(scene.accuracy, 1e-3):
-        lines += ["", "[model]", f"accuracy = {_toml_value(scene.accuracy)}"]
-    return "\n".join(lines) + "\n"
-
-
 def write_fit(result: FitResult, out_dir: Path) -> None:
     """Write result.json, <profile>.csv, <profile>.png and fitted_scene.toml into out_dir.
 
@@ -183,4 +109,4 @@ def write_fit(result: FitResult, out_dir: Path) -> None:
                 "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
                 "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
             plot_profile(staging / f"{p.name}.png", p)
-        (staging / "fitted_scene.toml").write_text(scene_toml(result.scene, out_dir))
+        (staging / "fitted_scene.toml").write_text(dump_scene(result.scene, out_dir, comment="written by fwdfit"))

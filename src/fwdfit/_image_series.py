@@ -158,7 +158,7 @@ def _remove_stale_staging(out_dir: Path, stems: Sequence[str]) -> None:
                 shutil.rmtree(stale, ignore_errors=True)
 
 
-def _local_client(scheduler: str | None, workers: int):
+def local_client(scheduler: str | None, workers: int):
     """A Dask client of the cluster at ``scheduler``, or of a new LocalCluster of ``workers``
     single-threaded processes; and the cluster to close (None for an existing one)."""
     try:
@@ -182,7 +182,7 @@ def _run_dask(tasks: list[tuple], scheduler: str | None, workers: int) -> Iterat
     """(task index, summary line) of every task, as the cluster finishes them."""
     from distributed import as_completed
 
-    client, cluster = _local_client(scheduler, workers)
+    client, cluster = local_client(scheduler, workers)
     try:
         futures = {client.submit(fit_one, *task, pure=False): i for i, task in enumerate(tasks)}
         for future in as_completed(futures):

@@ -31,6 +31,7 @@ class MaterialConstants:
     mu_per_m, mu_per_m_per_A: attenuation ``mu_per_m + mu_per_m_per_A * lambda[Å]``, 1/m.
     mu_table: optional extra attenuation ``lambda_A -> 1/m`` (NCrystal Bragg edges).
     ncrystal_cfg: the NCrystal cfg string the constants came from (kept for writing scenes).
+    formula, density_g_cm3: the formula and density (g/cm^3) they came from, if any (likewise).
     bragg_edges_A, bragg_jumps_per_m: wavelengths (Å, decreasing) where ``mu_table`` jumps,
     and mu just below minus just above each (1/m).
     """
@@ -38,10 +39,12 @@ class MaterialConstants:
     sld_e6_per_A2: float
     mu_per_m: float
     mu_per_m_per_A: float = 0.0
-    mu_table: Callable[[np.ndarray], np.ndarray] | None = None
+    mu_table: Callable[[np.ndarray], np.ndarray] | None = dataclasses.field(default=None, compare=False)
     ncrystal_cfg: str | None = None
     bragg_edges_A: tuple[float, ...] = ()
     bragg_jumps_per_m: tuple[float, ...] = ()
+    formula: str | None = None
+    density_g_cm3: float | None = None
 
 
 def constants_from_formula(formula: str, density_g_cm3: float) -> MaterialConstants:
@@ -65,6 +68,8 @@ def constants_from_formula(formula: str, density_g_cm3: float) -> MaterialConsta
         sld_e6_per_A2=float(sld[0]),
         mu_per_m=100.0 * (coherent_per_cm + incoherent_per_cm),
         mu_per_m_per_A=100.0 * absorption_per_cm / THERMAL_WAVELENGTH_A,
+        formula=formula,
+        density_g_cm3=float(density_g_cm3),
     )
 
 

@@ -25,37 +25,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._model import ModelParams
 from ._plan import MAX_TILT_DEG, initial_params
 from ._scene import Scene
 
-_INF = math.inf
-# key: (model field, default bounds as a function of the scene value, typical step)
-_LAYER_KEYS = {
-    "thickness_um": ((0.0, _INF), 1.0),
-    "sld_e6_per_A2": ((0.0, _INF), 0.1),
-    "mu_per_m": ((0.0, _INF), 1.0),
-    "mu_per_m_per_A": ((0.0, _INF), 0.1),
-    "density_scale": ((0.0, _INF), 0.01),
-}
+# vary key: (default bounds, typical step), per scene part (the table is ``_registry``)
+_SAMPLE_KEYS, _LAYER_KEYS, _PROFILE_KEYS = ({key: (q.bounds, q.step) for key, q in registry.part(name).items()}
+                                           for name in ("sample", "layers", "profiles"))
 LAYER_FIELDS = tuple(_LAYER_KEYS)  # per-layer model parameters
-# A free tilt is bounded by +-DEFAULT_TILT_BOUND_DEG, widened to twice a larger start
-# (at most MAX_TILT_DEG): kernel windows grow with the tilts the model must serve,
-# and samples are aligned to better than a degree.
-DEFAULT_TILT_BOUND_DEG = 1.0
-_SAMPLE_KEYS = {
-    "tilt_deg": ((-DEFAULT_TILT_BOUND_DEG, DEFAULT_TILT_BOUND_DEG), 0.01),
-    "centre_um": ((-_INF, _INF), 1.0),
-    "depth_mm": ((0.0, _INF), 0.01),
-    "drift_um_per_mm": ((-_INF, _INF), 0.01),
-}
-_PROFILE_KEYS = {
-    "distance_mm": ((0.0, _INF), 0.1),
-    "shift_um": ((-_INF, _INF), 1.0),
-    "norm": ((0.0, _INF), 0.01),
-    "background": ((-_INF, _INF), 0.001),
-}
 
 
 @dataclasses.dataclass(frozen=True)

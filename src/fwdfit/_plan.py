@@ -16,6 +16,7 @@ from collections.abc import Collection
 import jax.numpy as jnp
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._kernel import landing_range
 from ._limits import MAX_TILT_DEG, check_domain
@@ -102,17 +103,14 @@ def initial_params(scene: Scene, dtype=None) -> ModelParams:
     """
     layers = scene.sample.layers
     for layer in layers:
-        for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m"):
+        for key in (key for key, q in registry.part("layers").items() if q.from_data):
             if math.isnan(getattr(layer, key)):
                 raise FwdfitError(f"{scene.path}: layer {layer.name!r}: {key} is missing (only a fit "
                                   "may leave out the values it varies)")
     arr = lambda values: jnp.asarray(np.asarray(values, dtype=float), dtype=dtype)
     return ModelParams(
-        thickness_um=arr([l.thickness_um for l in layers]),
-        sld_e6_per_A2=arr([l.sld_e6_per_A2 for l in layers]),
-        mu_per_m=arr([l.mu_per_m for l in layers]),
-        mu_per_m_per_A=arr([l.mu_per_m_per_A for l in layers]),
-        density_scale=arr([l.density_scale for l in layers]),
+        **{key: arr([getattr(l, key) for l in layers])
+           for key, q in registry.part("layers").items() if q.model == "params"},
         tilt_deg=arr(scene.sample.tilt_deg),
         centre_um=arr(scene.sample.centre_um),
         depth_mm=arr(scene.sample.depth_mm),

@@ -35,6 +35,11 @@ _COMPILED: dict[str, object] = {}  # this process's compiled programs by program
 _MAX_COMPILED = 16
 
 
+def forget_compiled() -> None:
+    """Drop this process's compiled programs (the next ``Predictor`` compiles or loads anew)."""
+    _COMPILED.clear()
+
+
 def _predict_rows(model: ForwardModel, assemble: Assembler, values):
     """(T_model, T_att), each (rows, n_pixel_total): every profile, norm and background applied."""
 

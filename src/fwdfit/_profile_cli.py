@@ -163,7 +163,7 @@ def run_tof_profile(args: argparse.Namespace, roi, dose_roi) -> None:
               f"{args.tof_offset_us:g} us, rebin {args.rebin}, ROI {args.roi}")
     if profiles.angle_deg:
         header += f", rotated by {profiles.angle_deg:.4f} deg"
-    scene = skeleton_toml(profiles.wavelength_edges_A, args.pixel_um,
+    scene = skeleton_toml(profiles.wavelength_edges_A, profiles.x_um, args.pixel_um, args.out,
                           distance_mm=args.distance_mm, header=header)
     edges_s, edges_A = profiles.tof_edges_s, profiles.wavelength_edges_A
     with staged_folder(args.out) as staging:

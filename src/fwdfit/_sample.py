@@ -241,12 +241,12 @@ def sample(scene, n_draws: int, *, chains: int = 4, warmup: int | None = None, s
     positions = u_best + np.asarray(positions) @ L.T
     seconds = time.perf_counter() - begin
     draws = np.stack([p.from_unit(positions[..., j]) for j, p in enumerate(fitter.free)], axis=-1)
-    ess, rhat = _diagnostics(blackjax, draws)
+    ess, rhat = diagnostics(blackjax, draws)
     return Posterior(result.names, draws, result, int(np.sum(divergent)), float(np.mean(acceptance)),
                      ess, rhat, warmup, host.compile_time_s, seconds)
 
 
-def _diagnostics(blackjax, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def diagnostics(blackjax, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bulk ESS and rank-normalised split R-hat (n_free,) of draws (chains, draws, n_free)."""
     if draws.shape[1] < 4:  # too few draws to split chains: no diagnostics
         return np.full(draws.shape[2], np.nan), np.full(draws.shape[2], np.nan)

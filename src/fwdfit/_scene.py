@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from . import _registry as registry
 from ._errors import FwdfitError
 from ._limits import (DOMAIN, MAX_DIVERGENCE, MAX_PIXELS, MAX_PSF_PIXELS, SEE, check_domain,
                       check_domain_rows)
@@ -21,10 +23,6 @@ from ._materials import MaterialConstants, constants_from_formula, constants_fro
 from ._spectrum import BandSpectrum, GaussianLine, Spectrum, TabulatedSpectrum
 from ._tables import read_columns
 
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
 
 DEFAULT_ACCURACY = 1e-3
 
@@ -44,6 +42,17 @@ class Layer:
     same_as: str | None = None
     material: MaterialConstants | None = None
     density_scale: float = 1.0
+
+    @classmethod
+    def from_material(cls, name: str, thickness_um: float, material: MaterialConstants,
+                      density_scale: float = 1.0) -> Layer:
+        """A layer with the constants of ``material`` (``constants_from_formula`` or NCrystal)."""
+        return cls(name, thickness_um, material.sld_e6_per_A2, material.mu_per_m,
+                   material.mu_per_m_per_A, material=material, density_scale=density_scale)
+
+    def tied(self, name: str) -> Layer:
+        """A layer named ``name`` tied to this one (``same_as``): every value shared."""
+        return dataclasses.replace(self, name=name, same_as=self.same_as or self.name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +101,19 @@ class Profile:
     image: np.ndarray | None = None  # (rows, n) normalised transmission, NaN = masked
     image_err: np.ndarray | None = None  # (rows, n) its 1-sigma errors, if given
     image_file: Path | None = None
+    image_err_file: Path | None = None
+
+
+def pixel_count(x_min_um: float, x_max_um: float, pixel_um: float) -> int:
+    """How many whole pixels of ``pixel_um`` fit from ``x_min_um`` to ``x_max_um``."""
+    return int(math.floor((x_max_um - x_min_um) / pixel_um + 1e-6))
+
+
+def pixel_grid(x_min_um: float, x_max_um: float, pixel_um: float) -> np.ndarray:
+    """Centres (n,) of the whole pixels of ``pixel_um`` from ``x_min_um`` to ``x_max_um``:
+    a profile's ``x_um`` as a scene's ``x_min_um``/``x_max_um`` (or an image's ``x0_um``
+    and width) give it."""
+    return x_min_um + (np.arange(max(pixel_count(x_min_um, x_max_um, pixel_um), 0)) + 0.5) * pixel_um
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,18 +129,18 @@ class Scene:
     instruments: dict[str, Instrument]  # "" is the default [instrument]
     spectra: dict[str, Spectrum]
     profiles: tuple[Profile, ...]
-    fit: FitSpec
+    fit: FitSpec = dataclasses.field(default_factory=FitSpec)
     accuracy: float = DEFAULT_ACCURACY
     path: Path | None = None
 
 
-_SAMPLE_KEYS = {"depth_mm", "tilt_deg", "centre_um", "drift_um_per_mm", "layers"}
-_LAYER_KEYS = {"name", "thickness_um", "material", "density_g_cm3", "ncrystal",
-               "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A", "same_as", "density_scale"}
+_SAMPLE_KEYS = {"layers", *registry.part("sample")}
+_LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *registry.part("layers")}
+_FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_data)  # a fit may leave them out
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
-_PROFILE_KEYS = {"name", "distance_mm", "spectrum", "instrument", "file", "x_min_um", "x_max_um",
-                 "shift_um", "norm", "background", "image", "image_err", "x0_um"}
+_PROFILE_KEYS = {"name", "spectrum", "instrument", "file", "x_min_um", "x_max_um", "image", "image_err", "x0_um",
+                 *registry.part("profiles")}
 _BAND_KEYS = ("lambda_min_A", "lambda_max_A")
 _TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
 
@@ -255,13 +277,14 @@ def _sample(path: Path, table: Any, vary: tuple[str, ...]) -> Sample:
     layers: list[Layer] = []
     for index, layer_table in enumerate(layers_table):
         layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers, vary))
-    return Sample(
-        depth_mm=reader.number("depth_mm", positive=True),
-        tilt_deg=reader.number("tilt_deg", 0.0),
-        centre_um=reader.number("centre_um", 0.0),
-        layers=tuple(layers),
-        drift_um_per_mm=reader.number("drift_um_per_mm", 0.0),
-    )
+    return Sample(layers=tuple(layers), **_plain(reader, "sample"))
+
+
+def _plain(reader: _Reader, part: str) -> dict[str, float]:
+    """A scene part's fitted quantities that are read as they are (``_registry``: neither a
+    start from the data nor a material's constant), by key."""
+    return {key: reader.number(key, q.default, positive=q.positive)
+            for key, q in registry.part(part).items() if not (q.from_data or q.material)}
 
 
 def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple[str, ...] = ()) -> Layer:
@@ -269,7 +292,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
     estimates from the data."""
     reader = _Reader(path, table, where, _LAYER_KEYS)
     name = reader.string("name")
-    optional = {key for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m") if f"layers.{name}.{key}" in vary}
+    optional = {key for key in _FROM_DATA if f"layers.{name}.{key}" in vary}
     if any(layer.name == name for layer in earlier):
         reader.fail(reader.key("name"), f"duplicate layer name {name!r}")
     if reader.has("same_as"):
@@ -280,8 +303,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         tied = next((layer for layer in earlier if layer.name == target), None)
         if tied is None:
             reader.fail(reader.key("same_as"), f"names no earlier layer: {target!r}")
-        root = tied.same_as or tied.name
-        return dataclasses.replace(tied, name=name, same_as=root)
+        return tied.tied(name)
     material = None
     if reader.has("material") or reader.has("ncrystal"):
         material = _material(reader)
@@ -304,7 +326,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
                                     if "mu_per_m" not in explicit else 0.0),
         material=material,
-        density_scale=reader.number("density_scale", 1.0, positive=True),
+        **_plain(reader, "layers"),
     )
 
 
@@ -398,7 +420,7 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         if instrument not in instruments:
             reader.fail(reader.key("instrument"), f"no instrument named {instrument!r}")
         pixel_um = instruments[instrument].pixel_um
-        T = T_err = file = image = image_err = image_file = None
+        T = T_err = file = image = image_err = image_file = err_file = None
         for key, needs in (("image", "file"), ("image", "x_min_um"), ("image", "x_max_um"),
                            ("image_err", "file"), ("x0_um", "file")):
             if reader.has(key) and reader.has(needs):
@@ -410,7 +432,8 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             image_file = path.parent / reader.string("image")
             err_file = path.parent / reader.string("image_err") if reader.has("image_err") else None
             image, image_err = read_image(reader, image_file, err_file)
-            x_um = reader.number("x0_um", 0.0) + (np.arange(image.shape[1]) + 0.5) * pixel_um
+            x0_um = reader.number("x0_um", 0.0)
+            x_um = pixel_grid(x0_um, x0_um + image.shape[1] * pixel_um, pixel_um)
         elif reader.has("file"):
             file = path.parent / reader.string("file")
             columns = read_columns(file, ["x_um", "T"], ["T_err"])
@@ -425,18 +448,17 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                 check_domain_rows(column, values, f"{path}: {reader.key('file')}: {file}: {column}")
         else:
             x_min, x_max = reader.number("x_min_um"), reader.number("x_max_um")
-            n_pixels = int(math.floor((x_max - x_min) / pixel_um + 1e-6))
+            n_pixels = pixel_count(x_min, x_max, pixel_um)
             if n_pixels < 2:
                 reader.fail(reader.key("x_max_um"), "the pixel grid needs x_max_um > x_min_um + 2 pixels")
             if n_pixels > MAX_PIXELS:
                 reader.fail(reader.key("x_max_um"),
                             f"the pixel grid has {n_pixels} pixels, more than {MAX_PIXELS} ({SEE})")
-            x_um = x_min + (np.arange(n_pixels) + 0.5) * pixel_um
+            x_um = pixel_grid(x_min, x_max, pixel_um)
         profiles.append(Profile(
-            name, reader.number("distance_mm", positive=True), spectrum, instrument, x_um, T, T_err,
-            shift_um=reader.number("shift_um", 0.0), norm=reader.number("norm", 1.0, positive=True),
-            background=reader.number("background", 0.0), file=file, image=image, image_err=image_err,
-            image_file=image_file))
+            name=name, spectrum=spectrum, instrument=instrument, x_um=x_um, T=T, T_err=T_err,
+            **_plain(reader, "profiles"), file=file, image=image, image_err=image_err,
+            image_file=image_file, image_err_file=err_file))
     return tuple(profiles)
 
 
@@ -474,7 +496,8 @@ def with_image(scene: Scene, image_file: str | Path) -> Scene:
     if image.shape != profile.image.shape:
         raise FwdfitError(f"{image_file}: {image.shape[0]} x {image.shape[1]} pixels, the template image "
                           f"{profile.image_file.name} {profile.image.shape[0]} x {profile.image.shape[1]}")
-    replaced = dataclasses.replace(profile, image=image, image_err=None, image_file=Path(image_file))
+    replaced = dataclasses.replace(profile, image=image, image_err=None, image_file=Path(image_file),
+                                   image_err_file=None)
     profiles = scene.profiles[:index] + (replaced,) + scene.profiles[index + 1:]
     return dataclasses.replace(scene, profiles=profiles)
 

@@ -122,7 +122,7 @@ def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float,
                 left = _walk_out(x_um, drop, 0.5 * left_level, a, -1)
                 right = _walk_out(x_um, drop, 0.5 * right_level, b, +1)
                 if right > left:
-                    spikes = _refraction_edges(x_um, T, level, noise)
+                    spikes = refraction_edges(x_um, T, level, noise)
                     transparent = (spikes is not None and np.max(np.abs(T - level))
                                    > _TRANSPARENT * min(left_level, right_level))
                     return spikes if transparent else (left, right, level)
@@ -130,7 +130,7 @@ def outer_edges(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, float,
     return None
 
 
-def _refraction_edges(x_um, T, level: float, noise: float) -> tuple[float, float, float] | None:
+def refraction_edges(x_um, T, level: float, noise: float) -> tuple[float, float, float] | None:
     """Outer edges of a sample too transparent to show its plateau, from its outermost
     refraction spikes (a 3-pixel median _SPIKE_SIGNIFICANCE noise off the open level): each
     edge half-way between the gain outside it and the loss inside it, the extremes within
@@ -176,7 +176,7 @@ def segment(values: np.ndarray, k: int) -> np.ndarray:
     return np.array(bounds[::-1], int)
 
 
-def _attenuation(plateau: float, weight, path_um: float, offsets_per_m) -> float:
+def attenuation_from_plateau(plateau: float, weight, path_um: float, offsets_per_m) -> float:
     """mu (1/m) with sum(weight exp(-(mu + offsets) path)) = plateau (weights sum to 1)."""
     if not 0 < plateau < 1:
         return 0.0 if plateau >= 1 else math.inf
@@ -216,7 +216,7 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
         found.append(edges)
     usable = [i for i, e in enumerate(found) if e is not None]
     if not usable:  # a sample too transparent to show its plateau in any profile
-        found = [_refraction_edges(p.x_um, T[i], _open_level(T[i]), max(noise_sigma(T[i]), 1e-6))
+        found = [refraction_edges(p.x_um, T[i], _open_level(T[i]), max(noise_sigma(T[i]), 1e-6))
                  for i, p in enumerate(profiles)]
         usable = [i for i, e in enumerate(found) if e is not None]
     if not usable:
@@ -343,7 +343,7 @@ def _attenuations(scene: Scene, free, T, placed, thickness, model: ForwardModel,
             slope = layers[layer].mu_per_m_per_A
             slope = 0.0 if math.isnan(slope) else slope
             scale = layers[layer].density_scale  # mu = scale (mu_per_m + slope lambda + table)
-            estimates.append(_attenuation(float(np.median(T[i][plateau])) / level, weight, depth_um,
+            estimates.append(attenuation_from_plateau(float(np.median(T[i][plateau])) / level, weight, depth_um,
                                           scale * (slope * lam + table[:, layer])) / scale)
         finite = [e for e in estimates if math.isfinite(e)]
         if finite:

@@ -66,8 +66,8 @@ def _enable_float64() -> None:
 
 
 def _run_simulate(args) -> None:
-    from ._scene import load_scene
-    from ._simulate import simulate, write_simulation
+    from . import load_scene, simulate  # looked up when run: a test may replace them
+    from ._simulate import write_simulation
 
     check_paths([args.scene], out_dir=args.out)
     _enable_float64()
@@ -78,9 +78,9 @@ def _run_simulate(args) -> None:
 
 
 def _run_paganin(args) -> None:
-    from ._paganin_scene import paganin_layer, paganin_profiles
-    from ._scene import load_scene
+    from . import load_scene
     from ._tables import write_columns
+    from .paganin import paganin_layer, paganin_profiles
 
     check_paths([args.scene], out_dir=args.out)
     scene = load_scene(args.scene)
@@ -100,10 +100,7 @@ def _run_paganin(args) -> None:
 
 
 def _run_fit(args) -> int:
-    from ._cache import enable_compilation_cache
-    from ._fit import Fitter
-    from ._fit_output import write_fit
-    from ._scene import load_scene
+    from . import Fitter, enable_compilation_cache, load_scene, write_fit
 
     check_paths([args.scene], out_dir=args.out)
     _enable_float64()
@@ -231,18 +228,15 @@ def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     simulate = commands.add_parser("simulate", help="predict T and T_att for every profile of a scene")
-    simulate.add_argument("scene", help="scene file (TOML)")
-    simulate.add_argument("--out", required=True, help="output folder for <profile>.csv")
-    simulate.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
-                          help="target RMS error in T (default: the scene's, else 1e-3)")
+    _add_scene_options(simulate, "scene file (TOML)", "output folder for <profile>.csv")
     simulate.set_defaults(handler=_run_simulate)
     paganin = commands.add_parser(
         "paganin", help="apply the single-material Paganin-type filter to every measured profile",
         description="T_filtered = F^-1[F[T] / (1 + tau k^2)] with tau from one layer's SLD and "
                     "mu, the profile's wavelength, distance and beam divergence D/L; writes "
                     "DIR/<profile>.csv with columns x_um,T,T_filtered.")
-    paganin.add_argument("scene", help="scene file (TOML) whose profiles are measured (file =)")
-    paganin.add_argument("--out", required=True, metavar="DIR", help="output folder for <profile>.csv")
+    _add_scene_options(paganin, "scene file (TOML) whose profiles are measured (file =)",
+                       "output folder for <profile>.csv", accuracy=False)
     paganin.add_argument("--b-factor", type=_in_domain("b_factor"), default=1.0, metavar="F",
                          help="multiplies the layer's SLD in tau (default 1; the paper needed 40)")
     paganin.add_argument("--material", metavar="LAYER", default=None,
@@ -252,16 +246,12 @@ def _parser() -> argparse.ArgumentParser:
                          help="tau at the spectrum's mean wavelength (default) or averaged "
                               "over the spectrum")
     paganin.set_defaults(handler=_run_paganin)
-    fit = commands.add_parser("fit", help="fit the [fit] parameters to every measured profile at once",
-                              description="Exit status 0: a good fit; 1: bad input; 2: results "
-                                          "written but the solver did not converge; 3: results written, "
-                                          "but the data reject the fit (one line says where). Compiled "
-                                          "models are kept in FWDFIT_CACHE_DIR (default ~/.cache/fwdfit; "
-                                          "'off' disables).")
-    fit.add_argument("scene", help="scene file (TOML) with measured profiles and a [fit] table")
-    fit.add_argument("--out", required=True, help="output folder")
-    fit.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
-                     help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
+    fit = _fit_command(commands, "fit", "scene file (TOML) with measured profiles and a [fit] table", _run_fit,
+                       help="fit the [fit] parameters to every measured profile at once",
+                       description="Exit status 0: a good fit; 1: bad input; 2: results written but the "
+                                   "solver did not converge; 3: results written, but the data reject the "
+                                   "fit (one line says where). Compiled models are kept in "
+                                   "FWDFIT_CACHE_DIR (default ~/.cache/fwdfit; 'off' disables).")
     fit.add_argument("--starts", type=int, default=1,
                      help="N > 1 adds N - 1 random starts inside the bounds to the global scan's best "
                           "points (default 1: the scan alone)")
@@ -273,48 +263,51 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("--chains", type=int, default=4, metavar="C", help="NUTS chains (default 4)")
     fit.add_argument("--warmup", type=int, default=None, metavar="W",
                      help="NUTS warm-up steps per chain (default max(300, N/2))")
-    fit.add_argument("--quiet", action="store_true", help="no progress output")
-    fit.add_argument("--no-cache", action="store_true",
-                     help="compile without the persistent compilation cache")
-    fit.set_defaults(handler=_run_fit)
-    image = commands.add_parser(
-        "fit-image", help="fit a whole normalised image row by row (shared material, a centre per row)",
-        description="The scene's one profile names image = T.tif. Writes T_att.tif, T_corrected.tif, "
-                    "residual.tif, rows.csv, result.json and overview.png. Exit status as fwdfit fit "
-                    "(2: the shared fit did not converge; 3: more than 5 %% of the fitted rows fit poorly); "
-                    "flagged rows are named in rows.csv.")
-    image.add_argument("scene", help="scene file (TOML) whose one profile is an image, with a [fit] table")
-    image.add_argument("--out", required=True, help="output folder")
-    image.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
-                       help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
-    image.add_argument("--quiet", action="store_true", help="no progress output")
-    image.add_argument("--no-cache", action="store_true",
-                       help="compile without the persistent compilation cache")
-    image.set_defaults(handler=_run_fit_image)
-    series = commands.add_parser(
-        "fit-images", help="fit many images (a tomography or time series) with one scene as template",
+    _fit_command(commands, "fit-image", "scene file (TOML) whose one profile is an image, with a [fit] table",
+                 _run_fit_image,
+                 help="fit a whole normalised image row by row (shared material, a centre per row)",
+                 description="The scene's one profile names image = T.tif. Writes T_att.tif, T_corrected.tif, "
+                             "residual.tif, rows.csv, result.json and overview.png. Exit status as fwdfit fit "
+                             "(2: the shared fit did not converge; 3: more than 5 %% of the fitted rows fit "
+                             "poorly); flagged rows are named in rows.csv.")
+    series = _fit_command(
+        commands, "fit-images", "scene file (TOML) whose one profile is an image: the template", _run_fit_images,
+        help="fit many images (a tomography or time series) with one scene as template",
         description="Each image is fitted as fit-image fits the scene's image and written to DIR/<image "
                     "name>/; images whose folder is complete are skipped (an interrupted run resumes). "
                     "DIR/summary.csv has a line per image. Exit status 0: every image fitted well; "
                     "3: an image's fit failed, did not converge or was rejected; 1: bad input.")
-    series.add_argument("scene", help="scene file (TOML) whose one profile is an image: the template")
     series.add_argument("images", nargs="+", metavar="IMAGES",
                         help="TIFF files, folders of them, or globs ('proj_*.tif'), each with the template's "
                              "rows and columns")
-    series.add_argument("--out", required=True, metavar="DIR", help="output folder")
     series.add_argument("--scheduler", metavar="ADDRESS", default=None,
                         help="a Dask scheduler to fit on (tcp://host:8786), else a local cluster")
     series.add_argument("--workers", type=int, default=None, metavar="N",
                         help="local Dask worker processes (default: the machine's cores); 1: serially in "
                              "this process, no Dask needed")
-    series.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
-                        help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
-    series.add_argument("--quiet", action="store_true", help="no progress output")
-    series.add_argument("--no-cache", action="store_true",
-                        help="compile without the persistent compilation cache")
-    series.set_defaults(handler=_run_fit_images)
     add_profile_parser(commands)
     return parser
+
+
+def _add_scene_options(command: argparse.ArgumentParser, scene_help: str, out_help: str = "output folder",
+                       accuracy: bool = True) -> None:
+    """The scene, --out and (if ``accuracy``) --accuracy."""
+    command.add_argument("scene", help=scene_help)
+    command.add_argument("--out", required=True, metavar="DIR", help=out_help)
+    if accuracy:
+        command.add_argument("--accuracy", type=_in_domain("accuracy"), default=None,
+                             help="target RMS error in T, 1e-5 to 0.1 (default: the scene's, else 1e-3)")
+
+
+def _fit_command(commands, name: str, scene_help: str, handler, **texts) -> argparse.ArgumentParser:
+    """A fit command: the scene, --out and the options every fit command takes."""
+    command = commands.add_parser(name, **texts)
+    _add_scene_options(command, scene_help)
+    command.add_argument("--quiet", action="store_true", help="no progress output")
+    command.add_argument("--no-cache", action="store_true",
+                         help="compile without the persistent compilation cache")
+    command.set_defaults(handler=handler)
+    return command
 
 
 def main(argv: list[str] | None = None) -> int:

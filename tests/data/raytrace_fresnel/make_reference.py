@@ -1,6 +1,6 @@
 """Regenerate the Fresnel reference profiles of this folder with the project's exact ray tracer.
 
-For every ``<case>/scene.toml`` here and each of its profiles, ``fwdfit._reference.trace_reference``
+For every ``<case>/scene.toml`` here and each of its profiles, ``fwdfit.reference.trace_reference``
 runs twice with the same seed: with Fresnel partial reflection (columns T, T_err, T_att,
 T_att_err) and without it (T_sharp). The rays are the same in both runs (correlated sampling),
 so T - T_sharp has far less noise than T. Gaussian lines are tabulated on 801 points over the
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import fwdfit
-from fwdfit._reference import ReferenceLayer, trace_reference
-from fwdfit._spectrum import GaussianLine
+from fwdfit.reference import ReferenceLayer, trace_reference
+from fwdfit.scene import GaussianLine
 
 N_RAYS = 40_000_000  # profiles up to 5 mm from the sample
 N_RAYS_FAR = 60_000_000  # further away (their rays spread over a wider aim window)
@@ -40,7 +40,7 @@ def make(case_dir: Path) -> None:
     scene = fwdfit.load_scene(case_dir / "scene.toml")
     layers = [ReferenceLayer(l.thickness_um, l.sld_e6_per_A2, l.mu_per_m, l.mu_per_m_per_A)
               for l in scene.sample.layers]
-    log = {"tracer": "fwdfit._reference.trace_reference", "n_batches": N_BATCHES, "profiles": []}
+    log = {"tracer": "fwdfit.reference.trace_reference", "n_batches": N_BATCHES, "profiles": []}
     for i, profile in enumerate(scene.profiles):
         instrument = scene.instruments[profile.instrument]
         n_rays = N_RAYS if profile.distance_mm <= 5.0 else N_RAYS_FAR

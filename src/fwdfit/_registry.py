@@ -1,0 +1,81 @@
+"""The fitted quantities, each declared once: its scene part and key, unit, default value
+and bounds, typical step and where the model takes it.
+
+The scene reader (allowed keys, values a fit may leave out), the free parameters
+(``[fit] vary`` names, bounds, steps), the model's initial parameters, the write-back
+of fitted values, the scene writer (defaults left out) and result.json (units) read
+this table. A new quantity is one row here plus its field on ``Sample``, ``Layer`` or
+``Profile`` (and on ``ModelParams`` when ``model`` is ``"params"``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+_INF = math.inf
+# A free tilt is bounded by +-DEFAULT_TILT_BOUND_DEG, widened to twice a larger start
+# (at most MAX_TILT_DEG): kernel windows grow with the tilts the model must serve,
+# and samples are aligned to better than a degree.
+DEFAULT_TILT_BOUND_DEG = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Quantity:
+    """One fitted quantity.
+
+    part: ``"sample"``, ``"layers"`` or ``"profiles"``: the scene part whose field ``key``
+    holds it (``Sample``, ``Layer``, ``Profile``) and the first word of its ``vary`` name.
+    default: its value when the scene leaves it out (None: the scene must give it, or a
+    fit that varies it estimates it from the data when ``from_data``). model:
+    ``"params"``, a ``ModelParams`` field of the same name, or ``"assembler"``, applied
+    by the assembler (profile shifts, normalisation, background). positive: the scene
+    value must be > 0. material: a constant a layer's material gives (the reader and
+    writer treat it with the material); the others, neither ``from_data`` nor
+    ``material``, the reader reads as they are.
+    """
+
+    part: str
+    key: str
+    unit: str
+    default: float | None
+    bounds: tuple[float, float]
+    step: float
+    model: str = "params"
+    from_data: bool = False
+    positive: bool = False
+    material: bool = False
+
+
+QUANTITIES = (
+    Quantity("sample", "tilt_deg", "deg", 0.0, (-DEFAULT_TILT_BOUND_DEG, DEFAULT_TILT_BOUND_DEG), 0.01),
+    Quantity("sample", "centre_um", "um", 0.0, (-_INF, _INF), 1.0),
+    Quantity("sample", "depth_mm", "mm", None, (0.0, _INF), 0.01, positive=True),
+    Quantity("sample", "drift_um_per_mm", "um/mm", 0.0, (-_INF, _INF), 0.01, model="assembler"),
+    Quantity("layers", "thickness_um", "um", None, (0.0, _INF), 1.0, from_data=True),
+    Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True, material=True),
+    Quantity("layers", "mu_per_m", "1/m", None, (0.0, _INF), 1.0, from_data=True, material=True),
+    Quantity("layers", "mu_per_m_per_A", "1/(m A)", 0.0, (0.0, _INF), 0.1, material=True),
+    Quantity("layers", "density_scale", "", 1.0, (0.0, _INF), 0.01, positive=True),
+    Quantity("profiles", "distance_mm", "mm", None, (0.0, _INF), 0.1, positive=True),
+    Quantity("profiles", "shift_um", "um", 0.0, (-_INF, _INF), 1.0, model="assembler"),
+    Quantity("profiles", "norm", "", 1.0, (0.0, _INF), 0.01, model="assembler", positive=True),
+    Quantity("profiles", "background", "", 0.0, (-_INF, _INF), 0.001, model="assembler"),
+)
+BY_KEY = {q.key: q for q in QUANTITIES}
+assert len(BY_KEY) == len(QUANTITIES), "a key names one quantity"
+
+
+def part(name: str) -> dict[str, Quantity]:
+    """The quantities of one scene part, by key."""
+    return {q.key: q for q in QUANTITIES if q.part == name}
+
+
+def defaults(name: str) -> dict[str, float]:
+    """The defaults of one scene part's quantities that have one, by key."""
+    return {key: q.default for key, q in part(name).items() if q.default is not None}
+
+
+def unit(vary_name: str) -> str:
+    """The unit of a parameter by its ``vary`` name (``layers.Al.thickness_um`` -> ``um``)."""
+    return BY_KEY[vary_name.rsplit(".", 1)[-1]].unit

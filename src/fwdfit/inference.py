@@ -1,0 +1,37 @@
+"""The inference pieces behind ``fit``, for a new solver or sampler and for tests.
+
+``QUANTITIES`` declares every fitted quantity once (``Quantity``: scene part and key,
+unit, default, bounds, step, where the model takes it).
+``free_parameters`` resolves a scene's ``[fit]`` into ``FreeParameter`` values and
+``assembler`` maps their values to ``ModelParams``; ``Predictor`` is the one compiled
+program (T rows for free values), kept between fits (``forget_compiled`` drops this
+process's copies, ``cache_dir`` is the on-disk cache); ``levenberg_marquardt`` is the
+default solver of residual rows; ``outer_edges``, ``refraction_edges``, ``segment`` and
+``attenuation_from_plateau`` read starts off the data; ``assess`` and ``runs_z`` are the
+quality gate; ``covariance`` and ``errors_and_correlation`` the uncertainty from the
+Jacobian; ``diagnostics`` the sampler's effective sample sizes and R-hat.
+"""
+
+from ._cache import cache_dir as cache_dir
+from ._least_squares import Solution as Solution
+from ._least_squares import levenberg_marquardt as levenberg_marquardt
+from ._parameters import Assembler as Assembler
+from ._parameters import FreeParameter as FreeParameter
+from ._parameters import assembler as assembler
+from ._parameters import free_parameters as free_parameters
+from ._predict import Predictor as Predictor
+from ._predict import forget_compiled as forget_compiled
+from ._quality import Quality as Quality
+from ._quality import Region as Region
+from ._quality import assess as assess
+from ._quality import runs_z as runs_z
+from ._registry import QUANTITIES as QUANTITIES
+from ._registry import Quantity as Quantity
+from ._sample import blackjax_module as blackjax_module
+from ._sample import diagnostics as diagnostics
+from ._starts import attenuation_from_plateau as attenuation_from_plateau
+from ._starts import outer_edges as outer_edges
+from ._starts import refraction_edges as refraction_edges
+from ._starts import segment as segment
+from ._uncertainty import covariance as covariance
+from ._uncertainty import errors_and_correlation as errors_and_correlation
