@@ -310,6 +310,8 @@ def test_fit_image_fits_a_norm_per_row(tmp_path):
     truth = np.stack([3.0 + 10.0 * np.sin(2 * np.pi * rows / n_rows),
                       1.0 + 0.02 * np.cos(2 * np.pi * rows / n_rows)], axis=1)
     T, _ = predict(truth)
+    no_rows = predict(np.zeros((0, 2)))  # a search with no candidate left asks for none
+    assert [a.shape for a in no_rows] == [(0, T.shape[1])] * 2
     image = T + NOISE * np.random.default_rng(5).standard_normal(T.shape)
     tifffile.imwrite(tmp_path / "T.tif", image.astype(np.float32))
     with warnings.catch_warnings():

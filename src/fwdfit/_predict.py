@@ -95,13 +95,17 @@ class Predictor:
             if len(_COMPILED) >= _MAX_COMPILED:
                 del _COMPILED[next(iter(_COMPILED))]
             _COMPILED[key] = self._compiled
+        self.n_pixel_total = self._compiled.out_info[0].shape[1]
         self.compile_time_s = time.perf_counter() - start
         self.n_evaluations = 0
 
     def __call__(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictions for values (rows, n_free) in physical units: (T_model, T_att) as NumPy."""
-        values = np.atleast_2d(np.asarray(values, dtype=float))
+        values = np.asarray(values, dtype=float).reshape(-1, self.n_free)
         n_rows, chunk = values.shape[0], self.rows_per_call
+        if n_rows == 0:
+            empty = np.zeros((0, self.n_pixel_total))
+            return empty, empty.copy()
         padded = np.concatenate([values, np.repeat(values[-1:], -n_rows % chunk, axis=0)])
         place = jnp.asarray if self._rows_sharding is None else (
             lambda rows: jax.device_put(rows, self._rows_sharding))
