@@ -27,6 +27,7 @@ import numpy as np
 from . import _registry as registry
 from ._errors import FwdfitError
 from ._least_squares import levenberg_marquardt
+from ._objective import Objective
 from ._parameters import LAYER_FIELDS, FreeParameter, assembler, free_parameters
 from ._plan import build_model
 from ._predict import Predictor
@@ -133,30 +134,6 @@ def _data(scene: Scene):
     return [p.T for p in scene.profiles], sigmas, from_data
 
 
-class _Smoother:
-    """Gaussian smoothing of concatenated profiles (rows, N), each profile on its own, ends padded."""
-
-    def __init__(self, lengths: list[int], pixel_um: list[float], sigma_um: float):
-        self.slices = np.cumsum([0] + list(lengths))
-        self.kernels = []
-        for pixel in pixel_um:
-            half = math.ceil(3 * sigma_um / pixel)
-            offsets = np.arange(-half, half + 1)
-            kernel = np.exp(-0.5 * (offsets * pixel / sigma_um) ** 2) if sigma_um > 0 else (offsets == 0) * 1.0
-            self.kernels.append(kernel / kernel.sum())
-
-    def __call__(self, rows: np.ndarray) -> np.ndarray:
-        out = np.empty_like(rows)
-        for (a, b), kernel in zip(zip(self.slices[:-1], self.slices[1:]), self.kernels):
-            half = len(kernel) // 2
-            if half == 0:
-                out[:, a:b] = rows[:, a:b]
-                continue
-            padded = np.pad(rows[:, a:b], ((0, 0), (half, half)), mode="edge")
-            out[:, a:b] = sum(w * padded[:, k:k + b - a] for k, w in enumerate(kernel))
-        return out
-
-
 def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
     """The scene the model's static plan is built from, missing start values filled: an
     unknown SLD at the largest value the global scan tries (kernel windows are sized for
@@ -198,12 +175,16 @@ class Fitter:
     RMS error in T. n_starts: > 1 adds that many - 1 random starts inside the bounds
     to the best points of the global scan. tolerance: stop when a step moves no
     parameter by more than this many standard errors. progress: print what happens.
+    solver: the local least-squares solver, called as ``levenberg_marquardt`` (the
+    default) is: ``solver(residual_rows, u (K, n), typical (K, n), *, tolerance,
+    max_steps, progress) -> Solution``, with ``residual_rows`` mapping rows of
+    unconstrained coordinates (rows, n) to normalised residuals (rows, N).
     Runs in float64.
     """
 
     def __init__(self, scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
                  n_starts: int = 1, max_steps: int = 200, tolerance: float = 1e-2,
-                 progress: bool = False):
+                 progress: bool = False, solver=levenberg_marquardt):
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         if not jax.config.jax_enable_x64:
@@ -213,7 +194,7 @@ class Fitter:
         if n_starts < 1:
             raise FwdfitError(f"n_starts must be >= 1, got {n_starts}")
         self.scene, self.n_starts, self.tolerance, self.max_steps = scene, n_starts, tolerance, max_steps
-        self.progress = progress
+        self.progress, self.solver = progress, solver
         if scene.fit.per_row:
             raise FwdfitError(f"{scene.path}: fit.per_row: only for fwdfit fit-image (an image profile)")
         self.free = free_parameters(scene, vary, bounds)
@@ -229,10 +210,13 @@ class Fitter:
                   "the first time, seconds once cached)", flush=True)
         self.predict = Predictor(self.model, self.assemble, len(self.free))
         self.compile_time_s = self.predict.compile_time_s
-        lengths = [len(p.x_um) for p in scene.profiles]
-        pixels = [scene.instruments[p.instrument].pixel_um for p in scene.profiles]
-        self._smoothers = {s: _Smoother(lengths, pixels, s)
-                           for s in (_SEARCH_SMOOTHING_UM, 0.0)}
+        self._pixel_um = [scene.instruments[p.instrument].pixel_um for p in scene.profiles]
+
+    def objective(self, T=None, sigma=None) -> Objective:
+        """The fit's objective on data T and sigma (one array per profile; default: the scene's)."""
+        if T is None:
+            T, sigma, _ = self._data
+        return Objective(self.predict, T, sigma, self._pixel_um)
 
     def random_starts(self, n: int, around: np.ndarray, seed: int = 0) -> np.ndarray:
         """n random starting points (n, n_free): uniform inside two bounds, else spread
@@ -264,22 +248,16 @@ class Fitter:
         """
         scene, free = self.scene, self.free
         data, sigma, sigma_from_data = self._data if T is None else self._new_data(T, T_err)
-        data_all, sigma_all = np.concatenate(data), np.concatenate(sigma)
+        objective = self.objective(data, sigma)
         begin = time.perf_counter()
         evaluations = self.predict.n_evaluations
-
-        def residuals(values, smoothing_um):
-            smooth = self._smoothers[smoothing_um]
-            T_model, _ = self.predict(values)
-            return (smooth(T_model) - smooth(data_all[None]))/ sigma_all
-
         guess = estimate(scene, free, data, self.model)
         user = np.array([p.value for p in free]) if start is None else np.asarray(start, float)
         if user.shape != (len(free),):
             raise FwdfitError(f"start must have shape ({len(free)},), got {user.shape}")
         complete = np.all(np.isfinite(user)) and all(p.low < v < p.high for p, v in zip(free, user))
         candidates, n_scanned = global_search(
-            free, guess, lambda v: np.sum(residuals(v, _SEARCH_SMOOTHING_UM) ** 2, axis=1),
+            free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM),
             _CANDIDATES, extra=user[None] if complete else None)
         self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
         if self.n_starts > 1:
@@ -287,9 +265,9 @@ class Fitter:
         u = self._units(candidates)
 
         def solve(u, typical, tolerance):
-            return levenberg_marquardt(lambda rows: residuals(self._values(rows), 0.0), u, typical,
-                                       tolerance=tolerance, max_steps=self.max_steps,
-                                       progress=_progress_printer(self.progress))
+            return self.solver(lambda rows: objective.residuals(self._values(rows)), u, typical,
+                               tolerance=tolerance, max_steps=self.max_steps,
+                               progress=_progress_printer(self.progress))
 
         held = np.array([p.name in guess.held_names for p in free])
         if held.any():
@@ -408,17 +386,18 @@ def _compile_guess_s(model) -> float:
 
 def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
         n_starts: int = 1, seed: int = 0, max_steps: int = 200, tolerance: float = 1e-2,
-        progress: bool = False) -> FitResult:
+        progress: bool = False, solver=levenberg_marquardt) -> FitResult:
     """Fit the free parameters of a scene to all of its measured profiles at once.
 
     vary, bounds: override the scene's ``[fit]`` table. accuracy: the model's target
     RMS error in T. n_starts: > 1 adds random starts (drawn with ``seed``) to the
     global scan's best points. tolerance: stop when a step moves no parameter by more
-    than this many standard errors. progress: print what happens. Runs in float64.
-    To refit new data without recompiling, use ``Fitter``.
+    than this many standard errors. progress: print what happens. solver: the local
+    least-squares solver (see ``Fitter``). Runs in float64. To refit new data without
+    recompiling, use ``Fitter``.
     """
     fitter = Fitter(scene, vary=vary, bounds=bounds, accuracy=accuracy, n_starts=n_starts,
-                    max_steps=max_steps, tolerance=tolerance, progress=progress)
+                    max_steps=max_steps, tolerance=tolerance, progress=progress, solver=solver)
     return fitter(seed=seed)
 
 

@@ -26,7 +26,6 @@ import numpy as np
 
 from ._errors import FwdfitError
 from ._fit import FitResult, Fitter
-from ._predict import _predict_rows
 
 QUANTILES = (2.5, 16.0, 50.0, 84.0, 97.5)  # percent, as posterior.json reports them
 
@@ -112,15 +111,13 @@ def _log_density(fitter: Fitter, data, sigma):
 
     data, sigma: one array per profile (the measured T and its 1-sigma error)."""
     free = fitter.free
-    data, sigma = jnp.asarray(np.concatenate(data)), jnp.asarray(np.concatenate(sigma))
+    log_likelihood = fitter.objective(data, sigma).jax_log_likelihood()
 
     def log_density(model, assemble, u_fit, L, w):
         u = u_fit + L @ w
         values = jnp.stack([p.from_unit(u[j], jnp) for j, p in enumerate(free)])
         log_jacobian = sum(p.log_value_per_unit(u[j], jnp) for j, p in enumerate(free))
-        T_model, _ = _predict_rows(model, assemble, values[None])
-        z = (T_model[0] - data) / sigma
-        return -0.5 * jnp.sum(z * z) + log_jacobian
+        return log_likelihood(model, assemble, values) + log_jacobian
 
     return log_density
 

@@ -14,6 +14,7 @@ Jacobian; ``diagnostics`` the sampler's effective sample sizes and R-hat.
 
 from ._cache import cache_dir as cache_dir
 from ._least_squares import Solution as Solution
+from ._objective import Objective as Objective
 from ._least_squares import levenberg_marquardt as levenberg_marquardt
 from ._parameters import Assembler as Assembler
 from ._parameters import FreeParameter as FreeParameter

@@ -1,0 +1,74 @@
+"""The inference seam: one objective (residuals and log-likelihood) behind every consumer,
+and the local solver passed in.
+
+Data: the small Al scene's own model at a known truth plus 1 % Gaussian noise."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import numpy as np
+import pytest
+
+import fwdfit
+from fwdfit.inference import Objective, levenberg_marquardt
+from helpers import small_scene
+
+TRUTH = {"sample.centre_um": 3.0, "layers.Al.thickness_um": 1000.0, "layers.Al.sld_e6_per_A2": 2.078}
+VARY = ["sample.centre_um", "layers.Al.thickness_um"]
+NOISE = 0.01
+
+
+@pytest.fixture(scope="module")
+def fitter(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("objective")
+    truth = small_scene(TRUTH)
+    (profile,) = fwdfit.simulate(truth)
+    T = profile.T + np.random.default_rng(3).normal(0.0, NOISE, profile.T.shape)
+    np.savetxt(folder / "line.csv", np.c_[profile.x_um, T, np.full_like(T, NOISE)], delimiter=",",
+               header="x_um,T,T_err", comments="")
+    start = dict(TRUTH, **{"sample.centre_um": 0.0, "layers.Al.thickness_um": 980.0})
+    return fwdfit.Fitter(small_scene(start, file=folder / "line.csv", vary=VARY))
+
+
+def test_log_likelihood_is_the_gaussian_density_of_the_data(fitter):
+    """log L = sum of log N(T | T_model, sigma): against the density written out per pixel,
+    at two points; the JAX function (the sampler's) gives the same value, and its gradient
+    matches central differences of the host values."""
+    objective = fitter.objective()
+    assert isinstance(objective, Objective)
+    values = np.array([[3.0, 1000.0], [2.0, 1003.0]])
+    T_model, _ = fitter.predict(values)
+    density = -0.5 * ((objective.T - T_model) / objective.sigma) ** 2 - np.log(np.sqrt(2 * np.pi) * objective.sigma)
+    np.testing.assert_allclose(objective.log_likelihood(values), density.sum(axis=1), rtol=1e-12)
+
+    traced = objective.jax_log_likelihood()
+    value, grad = jax.value_and_grad(lambda v: traced(fitter.model, fitter.assemble, v))(jax.numpy.asarray(values[1]))
+    assert float(value) == pytest.approx(objective.log_likelihood(values[1:])[0], rel=1e-10)
+    steps = np.array([1e-3, 1e-3])
+    central = [(objective.log_likelihood(values[1] + np.eye(2)[j] * steps[j])[0]
+                - objective.log_likelihood(values[1] - np.eye(2)[j] * steps[j])[0]) / (2 * steps[j]) for j in range(2)]
+    np.testing.assert_allclose(np.asarray(grad), central, rtol=1e-4)
+
+
+def test_the_local_solver_is_passed_in(fitter):
+    """Fitter(solver=...) uses the solver it is given: a wrapper around the default sees
+    every local solve and gives the default's result; a solver that does not move leaves the
+    scan's best point, which the data reject against the solved fit."""
+    calls = []
+
+    def recording(residual_rows, u, typical, **options):
+        calls.append(u.shape)
+        return levenberg_marquardt(residual_rows, u, typical, **options)
+
+    default = fitter()
+    wrapped = dataclasses.replace(fitter, solver=recording) if dataclasses.is_dataclass(fitter) else fitter
+    wrapped.solver = recording
+    result = wrapped()
+    wrapped.solver = levenberg_marquardt
+    assert calls and all(shape[1] == len(VARY) for shape in calls)
+    np.testing.assert_allclose(result.values, default.values, rtol=0, atol=0)
+    assert abs(result["layers.Al.thickness_um"][0] - 1000.0) < 3 * result["layers.Al.thickness_um"][1] + 0.5
+    assert 0.8 < result.chi2_reduced < 1.2
