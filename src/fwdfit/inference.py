@@ -1,5 +1,7 @@
 """The inference pieces behind ``fit``, for a new solver or sampler and for tests.
 
+``Objective`` is the fit's Gaussian likelihood (residual rows, chi-square,
+log-likelihood on the host and as a JAX function), shared by the solver and the sampler.
 ``QUANTITIES`` declares every fitted quantity once (``Quantity``: scene part and key,
 unit, default, bounds, step, where the model takes it).
 ``free_parameters`` resolves a scene's ``[fit]`` into ``FreeParameter`` values and
