@@ -52,11 +52,12 @@ def _inside(free: tuple[FreeParameter, ...], values: np.ndarray) -> np.ndarray:
 def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
                   chi2_of: Callable[[np.ndarray], np.ndarray], n_keep: int,
                   extra: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """The n_keep best distinct starting points (n_keep, n_free) and the number of points scanned.
+    """The n_keep best distinct starting points (n_keep, n_free) and the number of points evaluated.
 
     chi2_of: rows of free values (m, n_free) -> chi-square (m,). extra: further points
     (e.g. the scene's own start) that compete with the scanned ones.
     """
+    chi2_of = _remembered(chi2_of)
     names = [p.name for p in free]
     tilt = names.index("sample.tilt_deg") if "sample.tilt_deg" in names else None
     thickness = [names.index(n) for n in estimate.thickness_names]
@@ -111,7 +112,23 @@ def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
             break
         if all(not _same(points[i], k, free) for k in kept):
             kept.append(points[i])
-    return np.array(kept), len(points)
+    return np.array(kept), chi2_of.n_evaluated
+
+
+def _remembered(chi2_of: Callable[[np.ndarray], np.ndarray]):
+    """chi2_of that evaluates each distinct row once (a sweep's trial set holds its current
+    point; a second sweep over a single SLD repeats the first)."""
+    known: dict[bytes, float] = {}
+
+    def remembered(rows: np.ndarray) -> np.ndarray:
+        new = [row for row in {row.tobytes(): row for row in rows if row.tobytes() not in known}.values()]
+        if new:
+            known.update(zip((row.tobytes() for row in new), chi2_of(np.array(new))))
+        remembered.n_evaluated = len(known)
+        return np.array([known[row.tobytes()] for row in rows])
+
+    remembered.n_evaluated = 0
+    return remembered
 
 
 def _same(a: np.ndarray, b: np.ndarray, free: tuple[FreeParameter, ...]) -> bool:
