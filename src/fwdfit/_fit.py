@@ -29,12 +29,12 @@ from ._errors import FwdfitError
 from ._least_squares import levenberg_marquardt
 from ._objective import Objective
 from ._parameters import LAYER_FIELDS, FreeParameter, assembler, free_parameters
-from ._plan import build_model
+from ._geometry import Geometry, geometry_of
 from ._predict import Predictor
-from ._quality import Quality, assess, edge_half_width_um
+from ._quality import Quality, assess
 from ._scene import Scene, load_scene
 from ._search import SLD_VALUE_MAX, global_search
-from ._starts import estimate, noise_sigma
+from ._starts import noise_sigma
 from ._uncertainty import band, central_differences, covariance, errors_and_correlation
 
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
@@ -179,12 +179,13 @@ class Fitter:
     default) is: ``solver(residual_rows, u (K, n), typical (K, n), *, tolerance,
     max_steps, progress) -> Solution``, with ``residual_rows`` mapping rows of
     unconstrained coordinates (rows, n) to normalised residuals (rows, N).
+    geometry: the sample's shape (``_geometry.Geometry``; default ``geometry_of(scene)``).
     Runs in float64.
     """
 
     def __init__(self, scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
                  n_starts: int = 1, max_steps: int = 200, tolerance: float = 1e-2,
-                 progress: bool = False, solver=levenberg_marquardt):
+                 progress: bool = False, solver=levenberg_marquardt, geometry: Geometry | None = None):
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         if not jax.config.jax_enable_x64:
@@ -201,8 +202,9 @@ class Fitter:
         self._data = _data(scene)
         tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)
         plan_scene = _plan_scene(scene, self.free)
-        self.model = build_model(plan_scene, accuracy, free=[p.name for p in self.free],
-                                 tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
+        self.geometry = geometry_of(scene) if geometry is None else geometry
+        self.model = self.geometry.build_model(plan_scene, accuracy, [p.name for p in self.free],
+                                               None if tilt is None else (tilt.low, tilt.high))
         self.assemble = assembler(plan_scene, self.free)
         if progress:
             print(f"compiling the model for this geometry ({len(scene.profiles)} profiles, "
@@ -251,13 +253,13 @@ class Fitter:
         objective = self.objective(data, sigma)
         begin = time.perf_counter()
         evaluations = self.predict.n_evaluations
-        guess = estimate(scene, free, data, self.model)
+        guess = self.geometry.estimate(scene, free, data, self.model)
         user = np.array([p.value for p in free]) if start is None else np.asarray(start, float)
         if user.shape != (len(free),):
             raise FwdfitError(f"start must have shape ({len(free)},), got {user.shape}")
         complete = np.all(np.isfinite(user)) and all(p.low < v < p.high for p, v in zip(free, user))
         candidates, n_scanned = global_search(
-            free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM),
+            free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM), self.geometry.at_tilts,
             _CANDIDATES, extra=user[None] if complete else None)
         self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
         if self.n_starts > 1:
@@ -357,21 +359,11 @@ class Fitter:
     def _quality(self, data, sigma, T_model, fitted: Scene) -> Quality:
         """The quality gate on the unsmoothed residuals, with edge regions at every interface
         of the fitted scene."""
-        sample = fitted.sample
-        tilt = math.radians(sample.tilt_deg)
-        cumulative = np.concatenate([[0.0], np.cumsum([l.thickness_um for l in sample.layers])])
-        across = (cumulative - 0.5 * cumulative[-1]) / math.cos(tilt)
-        media = ["vacuum"] + [l.name for l in sample.layers] + ["vacuum"]
-        labels = [f"{media[k]} | {media[k + 1]}" for k in range(len(across))]
         interfaces, halves, z, offset = [], [], [], 0
         for i, p in enumerate(fitted.profiles):
-            instrument = fitted.instruments[p.instrument]
-            centre = sample.centre_um + p.shift_um + sample.drift_um_per_mm * p.distance_mm
-            slope_um = p.distance_mm * 1e3 * math.tan(tilt)
-            interfaces.append([(centre + a, centre + a + slope_um, label) for a, label in zip(across, labels)])
-            penumbra = p.distance_mm * instrument.aperture_mm / instrument.aperture_distance_m
-            spread = 0.5 * sample.depth_mm * 1e3 * abs(math.tan(tilt))
-            halves.append(edge_half_width_um(p.distance_mm, penumbra, instrument.psf_fwhm_um, spread))
+            faces, half = self.geometry.interfaces(fitted, p)
+            interfaces.append(faces)
+            halves.append(half)
             n = len(p.x_um)
             z.append((data[i] - T_model[offset:offset + n]) / sigma[i])
             offset += n

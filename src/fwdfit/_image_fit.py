@@ -32,7 +32,7 @@ from ._errors import FwdfitError
 from ._fit import FitResult, Fitter
 from ._least_squares import levenberg_marquardt
 from ._parameters import assembler, free_parameters
-from ._plan import build_model
+from ._geometry import geometry_of
 from ._predict import Predictor
 from ._scene import Profile, Scene, load_scene
 from ._starts import _blur_um, noise_sigma, outer_edges
@@ -300,8 +300,8 @@ class _RowSolver:
                                          fit=dataclasses.replace(scene.fit, per_row=()))
         self.free = free_parameters(self.scene, vary=names.rows, bounds=names.bounds_rows)
         tilt = next((p for p in fitter.free if p.name == "sample.tilt_deg"), None)
-        self.model = build_model(self.scene, accuracy, free=[p.name for p in self.free],
-                                 tilt_range_deg=None if tilt is None else (tilt.low, tilt.high))
+        self.model = geometry_of(self.scene).build_model(self.scene, accuracy, [p.name for p in self.free],
+                                                         None if tilt is None else (tilt.low, tilt.high))
         self.predict = Predictor(self.model, assembler(self.scene, self.free), len(self.free))
         self.compile_time_s = self.predict.compile_time_s
         self.names = [p.name for p in self.free]

@@ -50,44 +50,34 @@ def _inside(free: tuple[FreeParameter, ...], values: np.ndarray) -> np.ndarray:
 
 
 def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
-                  chi2_of: Callable[[np.ndarray], np.ndarray], n_keep: int,
+                  chi2_of: Callable[[np.ndarray], np.ndarray], at_tilts, n_keep: int,
                   extra: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """The n_keep best distinct starting points (n_keep, n_free) and the number of points evaluated.
 
-    chi2_of: rows of free values (m, n_free) -> chi-square (m,). extra: further points
+    chi2_of: rows of free values (m, n_free) -> chi-square (m,). at_tilts: the geometry's
+    ``at_tilts(free, estimate, row, tilts)``, a row at trial tilts. extra: further points
     (e.g. the scene's own start) that compete with the scanned ones.
     """
     chi2_of = _remembered(chi2_of)
     names = [p.name for p in free]
     tilt = names.index("sample.tilt_deg") if "sample.tilt_deg" in names else None
-    thickness = [names.index(n) for n in estimate.thickness_names]
     slds = [j for j, p in enumerate(free) if p.target[0] == "sld_e6_per_A2"]
     unknown_sld = [j for j in slds if math.isnan(estimate.values[names[j]])]
     base = np.array([estimate.values[n] for n in names], float)
     base[unknown_sld] = _UNKNOWN_SLD
     if tilt is not None and math.isnan(base[tilt]):
         base[tilt] = 0.0
-    tilt_at_base = 0.0 if tilt is None else base[tilt]
-    base_projected = base.copy()
-    base_projected[thickness] = base[thickness] / math.cos(math.radians(tilt_at_base))
-
-    def at_tilts(row: np.ndarray, tilts: np.ndarray) -> np.ndarray:
-        rows = np.repeat(row[None], len(tilts), axis=0)
-        rows[:, tilt] = tilts
-        rows[:, thickness] = row[thickness][None] * np.cos(np.radians(tilts))[:, None]
-        return rows
-
     points = _inside(free, base[None] if extra is None else np.concatenate([base[None], extra]))
     chi2 = chi2_of(points)
     if tilt is not None:
-        coarse = _inside(free, at_tilts(base_projected, _tilt_grid(free[tilt].low, free[tilt].high)))
+        coarse = _inside(free, at_tilts(free, estimate, base, _tilt_grid(free[tilt].low, free[tilt].high)))
         coarse_chi2 = chi2_of(coarse)
         is_min = (np.r_[True, coarse_chi2[1:] <= coarse_chi2[:-1]]
                   & np.r_[coarse_chi2[:-1] <= coarse_chi2[1:], True])
         minima = np.flatnonzero(is_min)
         minima = minima[np.argsort(coarse_chi2[minima])][:_TILT_MINIMA]
         minima = minima[np.isfinite(coarse_chi2[minima])]
-        refined = _inside(free, at_tilts(base_projected, np.concatenate(
+        refined = _inside(free, at_tilts(free, estimate, base, np.concatenate(
             [coarse[m, tilt] + np.array(_TILT_REFINE_DEG) for m in minima] + [np.zeros(0)])))
         points = np.concatenate([points, coarse, refined])
         chi2 = np.concatenate([chi2, coarse_chi2, chi2_of(refined)])

@@ -8,7 +8,8 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 
-from ._plan import build_model, initial_params
+from ._geometry import geometry_of
+from ._plan import initial_params
 from ._scene import Scene, load_scene
 from ._tables import check_finite, staged_folder, write_columns
 
@@ -31,7 +32,7 @@ def simulate(scene: Scene | str | Path, accuracy: float | None = None) -> list[S
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
-    model = build_model(scene, accuracy)
+    model = geometry_of(scene).build_model(scene, accuracy, (), None)
     T, T_att = eqx.filter_jit(model)(initial_params(scene))
     profiles = [SimulatedProfile(p.name, p.x_um, np.asarray(t), np.asarray(a))
                 for p, t, a in zip(scene.profiles, T, T_att)]

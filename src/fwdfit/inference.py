@@ -1,5 +1,6 @@
 """The inference pieces behind ``fit``, for a new solver or sampler and for tests.
 
+``Geometry`` is the seam to the sample's shape (``LayeredBlock`` today, ``geometry_of``).
 ``Objective`` is the fit's Gaussian likelihood (residual rows, chi-square,
 log-likelihood on the host and as a JAX function), shared by the solver and the sampler.
 ``QUANTITIES`` declares every fitted quantity once (``Quantity``: scene part and key,
@@ -15,6 +16,9 @@ Jacobian; ``diagnostics`` the sampler's effective sample sizes and R-hat.
 """
 
 from ._cache import cache_dir as cache_dir
+from ._geometry import Geometry as Geometry
+from ._geometry import LayeredBlock as LayeredBlock
+from ._geometry import geometry_of as geometry_of
 from ._least_squares import Solution as Solution
 from ._objective import Objective as Objective
 from ._least_squares import levenberg_marquardt as levenberg_marquardt
