@@ -101,3 +101,5 @@ def test_registry_defaults_are_the_scene_defaults(tmp_path):
                 assert fields[q.key].default == q.default, q
             checked += 1
     assert checked >= 7
+    keys = [q.key for q in fwdfit.inference.QUANTITIES]
+    assert len(set(keys)) == len(keys), "a key names one quantity (a vary name ends in its key)"

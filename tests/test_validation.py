@@ -214,13 +214,13 @@ def test_folder_as_scene_is_one_line(tmp_path, capsys):
 # ----------------------------------------------------------------- finite outputs
 
 
-def _nan_model(scene, accuracy=None):
+def _nan_model(geometry, scene, accuracy, free, tilt_range_deg):
     return lambda params: ([jnp.full(40, jnp.nan)], [jnp.ones(40)])
 
 
 def test_simulate_refuses_non_finite_results(scene, tmp_path, capsys, monkeypatch):
     """A model that returns NaN (a bug) ends in one line and no files, not NaN CSVs."""
-    monkeypatch.setattr(fwdfit._simulate, "build_model", _nan_model)
+    monkeypatch.setattr(fwdfit.inference.LayeredBlock, "build_model", _nan_model)
     out = tmp_path / "out"
     assert main(["simulate", str(scene), "--out", str(out)]) == 1
     line = one_error_line(capsys)

@@ -31,10 +31,7 @@ from ._model import ModelParams
 from ._plan import MAX_TILT_DEG, initial_params
 from ._scene import Scene
 
-# vary key: (default bounds, typical step), per scene part (the table is ``_registry``)
-_SAMPLE_KEYS, _LAYER_KEYS, _PROFILE_KEYS = ({key: (q.bounds, q.step) for key, q in registry.part(name).items()}
-                                           for name in ("sample", "layers", "profiles"))
-LAYER_FIELDS = tuple(_LAYER_KEYS)  # per-layer model parameters
+LAYER_FIELDS = tuple(registry.part("layers"))  # per-layer model parameters
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,33 +112,33 @@ class FreeParameter:
 def _resolve(scene: Scene, name: str) -> list[tuple[str, str, tuple, tuple, float]]:
     """(canonical name, key, field target, default bounds, step) for one ``vary`` entry."""
     parts = name.split(".")
+    quantity = registry.BY_KEY.get(parts[-1])
+    part = None if quantity is None or quantity.part != parts[0] else quantity.part
+    key, bounds, step = parts[-1], *((quantity.bounds, quantity.step) if part else ((), 0.0))
     layers = {layer.name: layer for layer in scene.sample.layers}
-    if parts[0] == "sample" and len(parts) == 2 and parts[1] in _SAMPLE_KEYS:
-        bounds, step = _SAMPLE_KEYS[parts[1]]
-        return [(name, parts[1], (parts[1], ()), bounds, step)]
-    if parts[0] == "layers" and len(parts) >= 3 and parts[-1] in _LAYER_KEYS:
+    if part == "sample" and len(parts) == 2:
+        return [(name, key, (key, ()), bounds, step)]
+    if part == "layers" and len(parts) >= 3:
         layer = layers.get(".".join(parts[1:-1]))
         if layer is not None:
             root = layer.same_as or layer.name
             tied = tuple(i for i, l in enumerate(scene.sample.layers) if (l.same_as or l.name) == root)
-            bounds, step = _LAYER_KEYS[parts[-1]]
-            return [(f"layers.{root}.{parts[-1]}", parts[-1], (parts[-1], tied), bounds, step)]
-    if parts[0] == "profiles" and len(parts) >= 3 and parts[-1] in _PROFILE_KEYS:
+            return [(f"layers.{root}.{key}", key, (key, tied), bounds, step)]
+    if part == "profiles" and len(parts) >= 3:
         label = ".".join(parts[1:-1])
         names = [p.name for p in scene.profiles]
         chosen = range(len(names)) if label == "*" else [names.index(label)] if label in names else []
-        bounds, step = _PROFILE_KEYS[parts[-1]]
-        return [(f"profiles.{names[i]}.{parts[-1]}", parts[-1], (parts[-1], (i,)), bounds, step)
-                for i in chosen]
+        return [(f"profiles.{names[i]}.{key}", key, (key, (i,)), bounds, step) for i in chosen]
     raise FwdfitError(f"{scene.path}: fit.vary: unknown parameter {name!r} (parameter names: "
                       "sample.KEY, layers.LAYER.KEY, profiles.PROFILE.KEY; see docs/SCENE.md)")
 
 
 def _scene_value(scene: Scene, key: str, target: tuple) -> float:
-    field, index = target
-    if key in _LAYER_KEYS:
+    _, index = target
+    part = registry.BY_KEY[key].part
+    if part == "layers":
         return getattr(scene.sample.layers[index[0]], key)
-    if key in _PROFILE_KEYS:
+    if part == "profiles":
         return getattr(scene.profiles[index[0]], key)
     return getattr(scene.sample, key)
 
