@@ -37,6 +37,9 @@ _STEP_WAVELENGTHS = 64
 _MAX_BRAGG_BREAKS = 8
 # A band narrower than this fraction of its centre needs no more wavelength nodes than a line.
 _NARROW_BAND_REL = 0.3
+# A plain band narrower than this fraction of its centre (a time-of-flight bin) needs one
+# Gauss segment (4 nodes) at accuracy 1e-3: within 1e-5 RMS of 64 nodes (tests/test_tof_scaling.py).
+_BIN_BAND_REL = 0.05
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
@@ -58,10 +61,10 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     largest single-pixel errors at the edges).
     """
     factor = math.sqrt(1e-3 / accuracy)
-    narrow = isinstance(spectrum, GaussianLine) or (
-        isinstance(spectrum, BandSpectrum) and spectrum.table is None
-        and spectrum.lambda_max_A - spectrum.lambda_min_A < _NARROW_BAND_REL * spectrum.mean_wavelength_A)
-    base_lambda = 8 if narrow else 24
+    band_rel = ((spectrum.lambda_max_A - spectrum.lambda_min_A) / spectrum.mean_wavelength_A
+                if isinstance(spectrum, BandSpectrum) and spectrum.table is None else math.inf)
+    narrow = isinstance(spectrum, GaussianLine) or band_rel < _NARROW_BAND_REL
+    base_lambda = 4 if band_rel < _BIN_BAND_REL else 8 if narrow else 24
     n_lambda = max(4, math.ceil(base_lambda * factor * _LAMBDA_NODES_SCALE))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
     n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
