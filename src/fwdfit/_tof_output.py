@@ -28,17 +28,19 @@ def tof_bins(result: FitResult) -> list[int]:
 
 def away_from_edges(scene, index: int) -> np.ndarray:
     """Pixels (bool, (n,)) of profile ``index`` inside the thickest layer, farther from its
-    interfaces than the refraction reach plus the tilt's spread over the depth (fitted scene)."""
+    interfaces (at the mid-plane, and carried along the tilt to the detector) than the
+    refraction reach plus the tilt's spread over the depth (fitted scene)."""
     sample, profile = scene.sample, scene.profiles[index]
     thickness = np.array([l.thickness_um for l in sample.layers])
     tilt = math.radians(sample.tilt_deg)
     bounds = np.concatenate([[0.0], np.cumsum(thickness)]) - 0.5 * thickness.sum()
-    # the faces' mid-plane positions carried along the tilt to the detector (as ``_model`` places them)
-    bounds = (sample.centre_um + profile.shift_um + sample.drift_um_per_mm * profile.distance_mm
-              + bounds / math.cos(tilt) + 1e3 * profile.distance_mm * math.tan(tilt))
+    bounds = sample.centre_um + profile.shift_um + sample.drift_um_per_mm * profile.distance_mm + bounds / math.cos(tilt)
+    carried = 1e3 * profile.distance_mm * math.tan(tilt)  # refracted rays land about the faces carried to the detector
     thickest = int(np.argmax(thickness))
     margin = refraction_reach_um(scene, profile) + 0.5e3 * sample.depth_mm * abs(math.tan(tilt))
-    return (profile.x_um > bounds[thickest] + margin) & (profile.x_um < bounds[thickest + 1] - margin)
+    low = max(bounds[thickest], bounds[thickest] + carried) + margin
+    high = min(bounds[thickest + 1], bounds[thickest + 1] + carried) - margin
+    return (profile.x_um > low) & (profile.x_um < high)
 
 
 def spectrum_table(result: FitResult, bins: list[int]) -> dict[str, np.ndarray]:
