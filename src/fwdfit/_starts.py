@@ -43,6 +43,7 @@ _SHARP_BLUR_FACTOR = 4.0  # profiles blurred at most this much more than the sha
 _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
 _FALLBACK_SLD_E6_PER_A2 = 6.0  # SLD assumed for the refraction reach of a layer whose SLD is left out
 _REACH_MARGIN = 1.25  # the window of the intensity balance at an edge: this much beyond the reach
+_BALANCE_SIGNIFICANCE = 4.0  # balanced edges replace the crossings when the widths differ by this many sigma
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,29 +287,32 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
         usable = [i for i, e in enumerate(found) if e is not None]
     if not usable:
         return Estimate(values, ())
-    variance = {}  # profiles whose edges the intensity balance refined: their variance (µm^2)
+    balanced = {}  # profiles whose edges the intensity balance refined: (edges, variance µm^2)
     for i in usable:
         p = profiles[i]
-        balanced = balanced_edges(p.x_um, T[i], found[i], refraction_reach_um(scene, p),
-                                  scene.instruments[p.instrument].pixel_um)
-        if balanced is not None:
-            found[i], variance[i] = balanced
+        refined = balanced_edges(p.x_um, T[i], found[i], refraction_reach_um(scene, p),
+                                 scene.instruments[p.instrument].pixel_um)
+        if refined is not None:
+            balanced[i] = refined
     sharpest = min(usable, key=lambda i: _blur_um(scene, profiles[i]))
     offset = lambda i: profiles[i].shift_um + sample.drift_um_per_mm * profiles[i].distance_mm
     centres = {i: 0.5 * (found[i][0] + found[i][1]) for i in usable}
     # The stack's centre and width: the median over the sharp profiles (far ones are washed
     # out and widened by their fringes), each edge found to a few µm in noisy data.
     sharp = [i for i in usable if _blur_um(scene, profiles[i]) <= _SHARP_BLUR_FACTOR * _blur_um(scene, profiles[sharpest])]
-    # Balanced edges, where there are any, weighted by their precision: a time-of-flight
-    # stack's bins differ mostly in how clearly their plateau shows.
-    weighted = [i for i in sharp if i in variance]
+    centre_found = float(np.median([centres[i] - offset(i) for i in sharp]))
+    width = float(np.median([found[i][1] - found[i][0] for i in sharp]))
+    # The balanced edges, weighted by their precision (a time-of-flight stack's bins differ
+    # mostly in how clearly their plateau shows), replace the crossings where the two widths
+    # differ significantly: the fringes have pulled the crossings off the faces.
+    weighted = [i for i in sharp if i in balanced]
     if weighted:
-        weights = [1.0 / variance[i] for i in weighted]
-        centre_found = _weighted_median([centres[i] - offset(i) for i in weighted], weights)
-        width = _weighted_median([found[i][1] - found[i][0] for i in weighted], weights)
-    else:
-        centre_found = float(np.median([centres[i] - offset(i) for i in sharp]))
-        width = float(np.median([found[i][1] - found[i][0] for i in sharp]))
+        weights = [1.0 / balanced[i][1] for i in weighted]
+        balanced_width = _weighted_median([balanced[i][0][1] - balanced[i][0][0] for i in weighted], weights)
+        if abs(balanced_width - width) > _BALANCE_SIGNIFICANCE / math.sqrt(sum(weights)):
+            width = balanced_width
+            centre_found = _weighted_median([0.5 * (balanced[i][0][0] + balanced[i][0][1]) - offset(i)
+                                             for i in weighted], weights)
     left = centre_found + offset(sharpest) - 0.5 * width  # on the sharpest profile
     for p in free:
         field, index = p.target
