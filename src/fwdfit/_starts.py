@@ -159,8 +159,9 @@ def balanced_edges(x_um, T, edges, reach_um: float, pixel_um: float
     the open level and the plateau inside: the step's position follows from the window's
     sum, whatever the fringes look like (their extremes lie off the edge by up to the reach
     at long wavelengths). The open level is the mean outside both windows, each plateau
-    the mean over ``reach_um`` inside its window. ``edges``: first guesses (``outer_edges``).
-    None when the sample is too narrow for that or the open beam too short.
+    the mean over ``reach_um`` inside its window, which must be flat (its halves within
+    _STEP_SIGNIFICANCE). ``edges``: first guesses (``outer_edges``). None when the sample
+    is too narrow for that, its outer layer too thin, or the open beam too short.
     """
     left, right = edges[0], edges[1]
     if right - left < 4 * reach_um:
@@ -174,6 +175,10 @@ def balanced_edges(x_um, T, edges, reach_um: float, pixel_um: float
     for edge, outward in ((left, -1), (right, +1)):
         window = np.abs(x_um - edge) <= reach_um
         inner = (np.abs(x_um - (edge - 2 * outward * reach_um)) < reach_um) & ~window
+        halves = np.array_split(T[inner], 2)
+        if abs(halves[0].mean() - halves[1].mean()) > _STEP_SIGNIFICANCE * noise * math.sqrt(
+                1 / halves[0].size + 1 / halves[1].size):
+            return None  # no plateau there: the outer layer is thinner than the windows
         plateau = float(np.mean(T[inner]))
         drop = level - plateau
         if not drop > 0:
