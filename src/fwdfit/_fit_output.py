@@ -13,6 +13,9 @@ from ._errors import FwdfitError
 from ._fit import FitResult
 from ._scene_toml import dump_scene
 from ._tables import staged_folder, write_columns
+from ._tof_output import write_tof
+
+MAX_PROFILE_PLOTS = 24  # <profile>.png for at most this many profiles, evenly spread over the list
 
 
 def result_dict(result: FitResult) -> dict:
@@ -90,7 +93,8 @@ def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
 
 
 def write_fit(result: FitResult, out_dir: Path) -> None:
-    """Write result.json, <profile>.csv, <profile>.png and fitted_scene.toml into out_dir.
+    """Write result.json, <profile>.csv, <profile>.png (at most ``MAX_PROFILE_PLOTS``),
+    fitted_scene.toml and, for time-of-flight bins, ``_tof_output``'s files into out_dir.
 
     Everything is written into a temporary folder first and moved into place, so an
     error (a NaN or infinite value anywhere, which strict JSON cannot hold) or Ctrl-C
@@ -104,9 +108,13 @@ def write_fit(result: FitResult, out_dir: Path) -> None:
                           "(please report this scene)") from None
     with staged_folder(out_dir) as staging:
         (staging / "result.json").write_text(summary)
-        for p in result.profiles:
+        plotted = set(np.linspace(0, len(result.profiles) - 1, MAX_PROFILE_PLOTS).round().astype(int).tolist()
+                      if len(result.profiles) > MAX_PROFILE_PLOTS else range(len(result.profiles)))
+        for i, p in enumerate(result.profiles):
             write_columns(staging / f"{p.name}.csv", {
                 "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
                 "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
-            plot_profile(staging / f"{p.name}.png", p)
+            if i in plotted:
+                plot_profile(staging / f"{p.name}.png", p)
+        write_tof(result, staging)
         (staging / "fitted_scene.toml").write_text(dump_scene(result.scene, out_dir, comment="written by fwdfit"))

@@ -105,10 +105,10 @@ class ForwardModel(eqx.Module):
     interfaces: tuple[Interface, ...]
     n_profiles: int = eqx.field(static=True)
 
-    def __call__(self, params: ModelParams) -> tuple[list[Array], list[Array]]:
-        """Pixel-averaged T and T_att, one array (n_pixel,) per profile, in scene order."""
-        T: list = [None] * self.n_profiles
-        T_att: list = [None] * self.n_profiles
+    def stacked(self, params: ModelParams) -> tuple[tuple[Array, Array], ...]:
+        """Pixel-averaged (T, T_att) per group, each (n_group_profiles, n_pixel), rows in
+        ``group.index`` order: the traced graph does not grow with the profiles of a group."""
+        out = []
         for group in self.groups:
             index = np.asarray(group.index)
             per_profile = jax.vmap(_profile, in_axes=(None, None, None, 0, 0, 0, 0, 0))
@@ -118,7 +118,41 @@ class ForwardModel(eqx.Module):
                                        (group.step_wavelength_A, group.step_weight,
                                         group.step_mu_table_per_m))
             blur_and_bin = jax.vmap(lambda values: _blur_and_bin(group, values))  # one op for all rows
-            T_g, T_att_g = blur_and_bin(T_g), blur_and_bin(T_att_g)
+            out.append((blur_and_bin(T_g), blur_and_bin(T_att_g)))
+        return tuple(out)
+
+    def flat(self, params: ModelParams, norm=None, background=None) -> tuple[Array, Array]:
+        """(T, T_att) of every profile's pixels concatenated in scene order (n_pixel_total,),
+        ``norm * T + background`` when given (per profile, (n_profile,)); one gather, not one
+        op per profile."""
+        parts_T, parts_att = [], []
+        for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
+            index = np.asarray(group.index)
+            n = 1.0 if norm is None else norm[index][:, None]
+            b = 0.0 if background is None else background[index][:, None]
+            parts_T.append((n * T_g + b).ravel())
+            parts_att.append((n * T_att_g + b).ravel())
+        order = self.scene_order
+        T, T_att = jnp.concatenate(parts_T), jnp.concatenate(parts_att)
+        return (T, T_att) if order is None else (T[order], T_att[order])
+
+    @property
+    def scene_order(self) -> np.ndarray | None:
+        """Static gather from group order to scene order of the flat pixels; None if the same."""
+        starts, sizes, position = {}, {}, 0
+        for group in self.groups:
+            n_pixel = (group.n_edges - 1 - 2 * group.n_pad) // group.n_sub
+            for i in group.index:
+                starts[i], sizes[i] = position, n_pixel
+                position += n_pixel
+        order = np.concatenate([np.arange(starts[i], starts[i] + sizes[i]) for i in range(self.n_profiles)])
+        return None if np.array_equal(order, np.arange(position)) else order
+
+    def __call__(self, params: ModelParams) -> tuple[list[Array], list[Array]]:
+        """Pixel-averaged T and T_att, one array (n_pixel,) per profile, in scene order."""
+        T: list = [None] * self.n_profiles
+        T_att: list = [None] * self.n_profiles
+        for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
             for row, i in enumerate(group.index):
                 T[i], T_att[i] = T_g[row], T_att_g[row]
         return T, T_att

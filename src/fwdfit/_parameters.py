@@ -192,12 +192,26 @@ class Assembler(eqx.Module):
         fields = {f.name: getattr(self.base, f.name) for f in dataclasses.fields(ModelParams)}
         extra = {"shift_um": self.profile_shift_um, "drift_um_per_mm": self.drift_um_per_mm,
                  "norm": self.norm, "background": self.background}
-        for i, (field, index) in enumerate(self.targets):
+        for field, (scalar, positions, indices) in _by_field(self.targets).items():
             store = extra if field in extra else fields
-            current = store[field]
-            store[field] = current.at[np.asarray(index)].set(values[i]) if index else values[i]
+            if scalar is not None:
+                store[field] = values[scalar]
+            if positions:  # one gather and one scatter per field, however many profiles
+                store[field] = store[field].at[np.asarray(indices)].set(values[np.asarray(positions)])
         fields["shift_um"] = extra["shift_um"] + extra["drift_um_per_mm"] * fields["distance_mm"]
         return ModelParams(**fields), extra["norm"], extra["background"]
+
+
+def _by_field(targets: tuple) -> dict[str, tuple[int | None, list[int], list[int]]]:
+    """field -> (position of its scalar value or None, value positions, array indices) of targets."""
+    fields: dict = {}
+    for position, (field, index) in enumerate(targets):
+        scalar, positions, indices = fields.get(field, (None, [], []))
+        if not index:
+            scalar = position
+        positions, indices = positions + [position] * len(index), indices + list(index)
+        fields[field] = (scalar, positions, indices)
+    return fields
 
 
 def assembler(scene: Scene, free: tuple[FreeParameter, ...], dtype=None) -> Assembler:

@@ -37,6 +37,12 @@ _STEP_WAVELENGTHS = 64
 _MAX_BRAGG_BREAKS = 8
 # A band narrower than this fraction of its centre needs no more wavelength nodes than a line.
 _NARROW_BAND_REL = 0.3
+# A plain band narrower than this fraction of its centre (a time-of-flight bin) needs one
+# Gauss segment (4 nodes) at accuracy 1e-3: within 1e-5 RMS of 64 nodes (tests/test_tof_scaling.py).
+_BIN_BAND_REL = 0.05
+# Padding of wavelength nodes (nodes x kernel window edges) worth saving one group: about what a
+# group's compile time buys in a fit's ~200 evaluations on a CPU.
+_PAD_BUDGET = 4000
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
@@ -58,10 +64,10 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     largest single-pixel errors at the edges).
     """
     factor = math.sqrt(1e-3 / accuracy)
-    narrow = isinstance(spectrum, GaussianLine) or (
-        isinstance(spectrum, BandSpectrum) and spectrum.table is None
-        and spectrum.lambda_max_A - spectrum.lambda_min_A < _NARROW_BAND_REL * spectrum.mean_wavelength_A)
-    base_lambda = 8 if narrow else 24
+    band_rel = ((spectrum.lambda_max_A - spectrum.lambda_min_A) / spectrum.mean_wavelength_A
+                if isinstance(spectrum, BandSpectrum) and spectrum.table is None else math.inf)
+    narrow = isinstance(spectrum, GaussianLine) or band_rel < _NARROW_BAND_REL
+    base_lambda = 4 if band_rel < _BIN_BAND_REL else 8 if narrow else 24
     n_lambda = max(4, math.ceil(base_lambda * factor * _LAMBDA_NODES_SCALE))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
     n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
@@ -195,6 +201,39 @@ def _ladder(n: int) -> int:
     return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
 
 
+def _split_by_nodes(plans: dict[tuple, list[int]], per_profile) -> list[tuple[tuple, list[int]]]:
+    """The groups of every plan: its profiles by wavelength node count, most nodes first, a
+    class joining the group above it (padded to that group's node count, ``_padded``) while
+    the padding adds at most ``_PAD_BUDGET`` wavelength nodes x kernel window edges. A group
+    costs a whole copy of the model's program to compile, a padded node its share of every
+    evaluation (time-of-flight bins straddling a Bragg edge have more nodes than the rest)."""
+    split = []
+    for key, index in plans.items():
+        window_edges = 2 * key[-1] + 1
+        counts = {i: len(per_profile[i][1]) for i in index}
+        group, top, used = [], None, 0
+        for n in sorted(set(counts.values()), reverse=True):
+            members = [i for i in index if counts[i] == n]
+            extra = 0 if top is None else (top - n) * len(members) * window_edges
+            if top is not None and used + extra > _PAD_BUDGET:
+                split.append((key, sorted(group)))
+                group, top, used, extra = [], None, 0, 0
+            group, top, used = group + members, n if top is None else top, used + extra
+        split.append((key, sorted(group)))
+    return split
+
+
+def _padded(rows: list[np.ndarray], k: int) -> list[np.ndarray]:
+    """Rows of field k of ``per_profile`` padded along the wavelength axis to the longest:
+    the last node repeated with weight 0 (fields 2 and 5 are weights), so nothing changes."""
+    if k == 0:
+        return rows
+    n = max(len(r) for r in rows)
+    pad = lambda r: np.concatenate([r, np.zeros((n - len(r),) + r.shape[1:]) if k in (2, 5)
+                                    else np.repeat(r[-1:], n - len(r), axis=0)])
+    return [pad(r) for r in rows]
+
+
 def build_model(scene: Scene, accuracy: float | None = None, free: Collection[str] = (),
                 tilt_range_deg: tuple[float, float] | None = None) -> ForwardModel:
     """The forward model for every profile of ``scene``.
@@ -232,19 +271,19 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
         lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
-        key = (profile.instrument, n_edges, n_sub, n_pad, window, len(lam))
+        key = (profile.instrument, n_edges, n_sub, n_pad, window)
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
         fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)), breaks_A)
         per_profile.append((first_edge, lam, weight, _mu_tables(scene, lam), fine_lam, fine_weight,
                             _mu_tables(scene, fine_lam)))
     groups = []
-    for (instrument_name, n_edges, n_sub, n_pad, window, _), index in plans.items():
+    for (instrument_name, n_edges, n_sub, n_pad, window), index in _split_by_nodes(plans, per_profile):
         instrument = scene.instruments[instrument_name]
         z_nodes, z_weights = _unit_gauss(max(depth_nodes[i] for i in index))
         angle_nodes, angle_weights = _unit_gauss(fresnel_nodes(accuracy, instrument.aperture)
                                                  if instrument.fresnel else 0)
-        stack = lambda k: jnp.asarray(np.stack([per_profile[i][k] for i in index]))
+        stack = lambda k: jnp.asarray(np.stack(_padded([per_profile[i][k] for i in index], k)))
         groups.append(ProfileGroup(
             index=tuple(index), aperture=instrument.aperture,
             aperture_um=instrument.aperture_mm * 1e3,

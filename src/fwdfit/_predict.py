@@ -45,9 +45,7 @@ def _predict_rows(model: ForwardModel, assemble: Assembler, values):
 
     def one(v):
         params, norm, background = assemble(v)
-        T, T_att = model(params)
-        return (jnp.concatenate([n * t + b for t, n, b in zip(T, norm, background)]),
-                jnp.concatenate([n * t + b for t, n, b in zip(T_att, norm, background)]))
+        return model.flat(params, norm, background)
 
     return jax.vmap(one)(values)
 

@@ -41,6 +41,9 @@ _DESPIKE_UM = 25.0  # ... after a running median this wide removes the refractio
 _STEP_SIGNIFICANCE = 5.0  # a segmented step counts when the plateaus differ by this many sigma
 _SHARP_BLUR_FACTOR = 4.0  # profiles blurred at most this much more than the sharpest give the edges
 _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
+_FALLBACK_SLD_E6_PER_A2 = 6.0  # SLD assumed for the refraction reach of a layer whose SLD is left out
+_REACH_MARGIN = 1.25  # the window of the intensity balance at an edge: this much beyond the reach
+_BALANCE_SIGNIFICANCE = 4.0  # balanced edges replace the crossings when the widths differ by this many sigma
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,6 +150,74 @@ def refraction_edges(x_um, T, level: float, noise: float) -> tuple[float, float,
             edge(strong[x_um[strong] > x_um[strong[-1]] - _SPIKE_PAIR_UM]), level)
 
 
+def balanced_edges(x_um, T, edges, reach_um: float, pixel_um: float
+                   ) -> tuple[tuple[float, float, float], float] | None:
+    """Outer edges (left, right, open level) refined by the intensity balance, and their variance (µm^2).
+
+    Refraction and reflection move intensity across an edge without removing it, so over
+    a window of ``reach_um`` either side of it the data hold as much as a sharp step between
+    the open level and the plateau inside: the step's position follows from the window's
+    sum, whatever the fringes look like (their extremes lie off the edge by up to the reach
+    at long wavelengths). The open level is the mean outside both windows, each plateau
+    the mean over ``reach_um`` inside its window, which must be flat (its halves within
+    _STEP_SIGNIFICANCE). ``edges``: first guesses (``outer_edges``). None when the sample
+    is too narrow for that, its outer layer too thin, or the open beam too short.
+    """
+    left, right = edges[0], edges[1]
+    if right - left < 4 * reach_um:
+        return None
+    outside = (x_um < left - reach_um) | (x_um > right + reach_um)
+    if outside.sum() < 3:
+        return None
+    noise = max(noise_sigma(T), 1e-6)
+    level = float(np.mean(T[outside]))
+    refined, variance = [], 0.0
+    for edge, outward in ((left, -1), (right, +1)):
+        window = np.abs(x_um - edge) <= reach_um
+        inner = (np.abs(x_um - (edge - 2 * outward * reach_um)) < reach_um) & ~window
+        halves = np.array_split(T[inner], 2)
+        if abs(halves[0].mean() - halves[1].mean()) > _STEP_SIGNIFICANCE * noise * math.sqrt(
+                1 / halves[0].size + 1 / halves[1].size):
+            return None  # no plateau there: the outer layer is thinner than the windows
+        plateau = float(np.mean(T[inner]))
+        drop = level - plateau
+        if not drop > 0:
+            return None
+        x = x_um[window]
+        a, b = x[0] - 0.5 * pixel_um, x[-1] + 0.5 * pixel_um
+        total = float(np.sum(T[window])) * pixel_um
+        if outward < 0:  # open on [a, e], plateau on [e, b]
+            refined.append((total + level * a - plateau * b) / drop)
+        else:  # plateau on [a, e], open on [e, b]
+            refined.append((level * b - plateau * a - total) / drop)
+        levels_variance = noise**2 * (1 / outside.sum() + 1 / inner.sum())
+        variance += (noise**2 * pixel_um**2 * window.sum() + (b - a) ** 2 * levels_variance) / drop**2
+    if not refined[0] < refined[1]:
+        return None
+    return (refined[0], refined[1], level), variance
+
+
+def refraction_reach_um(scene: Scene, profile) -> float:
+    """How far (µm) from an outer edge refraction and reflection move intensity, plus the blur.
+
+    Rays grazing an outer face below the critical angle of the longest wavelength land
+    at most that angle x the lever (distance + depth / 2) beyond the face; outer layers
+    whose SLD is left out count as ``_FALLBACK_SLD_E6_PER_A2``.
+    """
+    layers = scene.sample.layers
+    sld = max(abs(l.density_scale * (_FALLBACK_SLD_E6_PER_A2 if math.isnan(l.sld_e6_per_A2) else l.sld_e6_per_A2))
+              for l in (layers[0], layers[-1]))
+    critical_rad = scene.spectra[profile.spectrum].support_A[1] * math.sqrt(sld * 1e-6 / math.pi)
+    lever_um = 1e3 * (profile.distance_mm + 0.5 * scene.sample.depth_mm)
+    return _REACH_MARGIN * (critical_rad * lever_um + _blur_um(scene, profile))
+
+
+def _weighted_median(values, weights) -> float:
+    order = np.argsort(values)
+    cumulative = np.cumsum(np.asarray(weights, float)[order])
+    return float(np.asarray(values)[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+
+
 def running_median(values: np.ndarray, n: int) -> np.ndarray:
     """Running median over n pixels (odd), ends padded with the end values."""
     if n <= 1:
@@ -221,6 +292,13 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
         usable = [i for i, e in enumerate(found) if e is not None]
     if not usable:
         return Estimate(values, ())
+    balanced = {}  # profiles whose edges the intensity balance refined: (edges, variance µm^2)
+    for i in usable:
+        p = profiles[i]
+        refined = balanced_edges(p.x_um, T[i], found[i], refraction_reach_um(scene, p),
+                                 scene.instruments[p.instrument].pixel_um)
+        if refined is not None:
+            balanced[i] = refined
     sharpest = min(usable, key=lambda i: _blur_um(scene, profiles[i]))
     offset = lambda i: profiles[i].shift_um + sample.drift_um_per_mm * profiles[i].distance_mm
     centres = {i: 0.5 * (found[i][0] + found[i][1]) for i in usable}
@@ -229,6 +307,17 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     sharp = [i for i in usable if _blur_um(scene, profiles[i]) <= _SHARP_BLUR_FACTOR * _blur_um(scene, profiles[sharpest])]
     centre_found = float(np.median([centres[i] - offset(i) for i in sharp]))
     width = float(np.median([found[i][1] - found[i][0] for i in sharp]))
+    # The balanced edges, weighted by their precision (a time-of-flight stack's bins differ
+    # mostly in how clearly their plateau shows), replace the crossings where the two widths
+    # differ significantly: the fringes have pulled the crossings off the faces.
+    weighted = [i for i in sharp if i in balanced]
+    if weighted:
+        weights = [1.0 / balanced[i][1] for i in weighted]
+        balanced_width = _weighted_median([balanced[i][0][1] - balanced[i][0][0] for i in weighted], weights)
+        if abs(balanced_width - width) > _BALANCE_SIGNIFICANCE / math.sqrt(sum(weights)):
+            width = balanced_width
+            centre_found = _weighted_median([0.5 * (balanced[i][0][0] + balanced[i][0][1]) - offset(i)
+                                             for i in weighted], weights)
     left = centre_found + offset(sharpest) - 0.5 * width  # on the sharpest profile
     for p in free:
         field, index = p.target

@@ -37,6 +37,8 @@ from ._registry import Quantity as Quantity
 from ._sample import blackjax_module as blackjax_module
 from ._sample import diagnostics as diagnostics
 from ._starts import attenuation_from_plateau as attenuation_from_plateau
+from ._starts import balanced_edges as balanced_edges
+from ._starts import estimate as estimate_starts
 from ._starts import outer_edges as outer_edges
 from ._starts import refraction_edges as refraction_edges
 from ._starts import segment as segment
