@@ -28,7 +28,7 @@ import numpy as np
 from . import _registry as registry
 from ._errors import FwdfitError
 from ._model import ModelParams
-from ._plan import MAX_TILT_DEG, initial_params
+from ._plan import MAX_TILT_DEG, initial_params, layer_value
 from ._scene import Scene
 
 # vary key: (default bounds, typical step), per scene part (the table is ``_registry``)
@@ -140,7 +140,7 @@ def _resolve(scene: Scene, name: str) -> list[tuple[str, str, tuple, tuple, floa
 def _scene_value(scene: Scene, key: str, target: tuple) -> float:
     field, index = target
     if key in _LAYER_KEYS:
-        return getattr(scene.sample.layers[index[0]], key)
+        return layer_value(scene.sample.layers[index[0]], key)
     if key in _PROFILE_KEYS:
         return getattr(scene.profiles[index[0]], key)
     return getattr(scene.sample, key)
