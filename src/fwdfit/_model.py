@@ -20,6 +20,8 @@ fitting; float32 agrees to ~1e-4 in T.
 
 from __future__ import annotations
 
+import statistics
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -95,9 +97,7 @@ class ProfileGroup(eqx.Module):
     # Fresnel partial reflection: Gauss-Legendre on [0, 1] for ``_kernel.fresnel_transfer``; () when off
     fresnel_nodes: tuple[float, ...] = eqx.field(static=True)
     fresnel_weights: tuple[float, ...] = eqx.field(static=True)
-    # Rough faces: Gauss-Hermite nodes (in standard deviations) and weights (sum 1) of the normal slope
-    rough_nodes: tuple[float, ...] = eqx.field(static=True)
-    rough_weights: tuple[float, ...] = eqx.field(static=True)
+    rough_strata: int = eqx.field(static=True)  # rough faces: equiprobable strata of the normal tilt; 0 when none
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -250,9 +250,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     (``_kink_aligned_depths``). The kernel replaces the crossing rays' step assignment by
     their true path in its own wavelength quadrature, so that an interface without
     contrast adds exactly nothing. A rough face's deflected rays are averaged over its
-    normal's tilt (Gauss-Hermite nodes ``group.rough_nodes``): at tilt t the rays meet
-    the face at a' = a - t, leave at t + (the sharp face's outgoing angle at a'), and
-    those with a <= t pass straight (``AngularMass``).
+    normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
+    leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
+    straight (``AngularMass``).
     """
     boundary, slope, z_mid, mu_from, mu_to, k, slope_rms = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
@@ -285,9 +285,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         return attenuation, attenuation
     reflected_path = jnp.exp(-mu_from_l * depth_um)
     k_l = k[:, None]
-    if rough:  # a leading axis of normal tilts (t, 1, 1): nodes (t, l, N, e), sums (t, l, e)
-        tilt = (slope_rms * np.asarray(group.rough_nodes)).reshape(-1, 1, 1)
-        tilt_weight = np.asarray(group.rough_weights)
+    if rough:  # a leading axis of normal tilts (t, l, 1): nodes (t, l, N, e), sums (t, l, e)
+        tilt = slope_rms * _tilt_quantiles(group.rough_strata, k.shape[0])[..., None]
+        tilt_weight = np.full(group.rough_strata, 1.0 / group.rough_strata)
         aim_l = jnp.broadcast_to(aim, tilt.shape[:1] + k.shape + aim.shape)
         right_of_interface = aim_l > tilt * distance_um
         shifted = lambda kinks: lambda m: tuple(angle + tilt for angle in kinks(m))  # local -> global angles
@@ -315,6 +315,21 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
                                         group.fresnel_weights)
         deflected = deflected + summed(jnp.sum((reflected_path * gained - true_path(z) * lost) * scale, axis=-2))
     return deflected - stepped, attenuation
+
+
+def _tilt_quantiles(n_strata: int, n_lam: int) -> np.ndarray:
+    """Standard-normal tilts (n_strata, n_lam) of equal weight: stratum i of wavelength node j at
+    probability (i + f_j) / n_strata, the fractions f_j spread over (0, 1) in van der Corput order,
+    so that the wavelength sum sees n_strata * n_lam distinct tilts; scaled to unit variance."""
+    def van_der_corput(j):
+        value, base = 0.0, 0.5
+        while j:
+            value, j, base = value + base * (j & 1), j >> 1, base / 2
+        return value
+    fractions = (np.array([van_der_corput(j) for j in range(n_lam)]) + 0.5 / n_lam) % 1.0
+    probability = (np.arange(n_strata)[:, None] + fractions[None, :]) / n_strata
+    tilts = np.vectorize(statistics.NormalDist().inv_cdf)(probability)
+    return tilts / np.sqrt(np.mean(tilts**2))
 
 
 def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, distance_mm, shift_um,

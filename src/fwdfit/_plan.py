@@ -41,9 +41,11 @@ _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
 _DEPTH_NODES_PER_LOG = 0.5
-# Rough faces: Gauss-Hermite nodes over the normal's tilt, and the head-room of a free
-# roughness over its start (at least _ROUGH_FREE_MIN_MRAD) for the kernel windows.
-_ROUGH_NODES = 3
+# Rough faces: equiprobable strata of the normal's tilt (``_model._tilt_quantiles``), the
+# largest tilt in RMS slopes that the kernel windows cover, and the head-room of a free
+# roughness over its start (at least _ROUGH_FREE_MIN_MRAD).
+_ROUGH_STRATA = 3
+_ROUGH_REACH = 3.0
 _ROUGH_FREE_MARGIN = 2.0
 _ROUGH_FREE_MIN_MRAD = 1.0
 # A graded layer's uniform pieces in the step profile: enough that a stair's step in T is
@@ -270,11 +272,9 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     if tilt_range_deg is None:
         tilt = scene.sample.tilt_deg
         tilt_range_deg = (-MAX_TILT_DEG, MAX_TILT_DEG) if "sample.tilt_deg" in free else (tilt, tilt)
-    rough_nodes, rough_weights = np.polynomial.hermite_e.hermegauss(_ROUGH_NODES)
     rough_mrad = max(_rough_mrad(scene, free))
     interfaces = _interfaces(scene, free)
-    if not any(face.rough for face in interfaces):
-        rough_nodes, rough_weights, rough_mrad = (), (), 0.0
+    strata = _ROUGH_STRATA if any(face.rough for face in interfaces) else 0
     graded = _graded(scene, free)
     plans: dict[tuple, list[int]] = {}
     per_profile = []
@@ -294,7 +294,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
         margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
         window_um = _window_um(scene, instrument, spectrum, profile, margin, tilt_range_deg,
-                               1e-3 * rough_mrad * float(np.max(rough_nodes, initial=0.0)))
+                               1e-3 * rough_mrad * _ROUGH_REACH if strata else 0.0)
         window = math.ceil(window_um / bin_um) + 2
         window = min(_ladder(window), (n_edges - 1) // 2)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
@@ -321,8 +321,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
             z_nodes=z_nodes, z_weights=z_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
-            rough_nodes=tuple(float(v) for v in rough_nodes),
-            rough_weights=tuple(float(v) for v in np.asarray(rough_weights) / np.sum(rough_weights)),
+            rough_strata=strata,
             first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
             step_mu_table_per_m=stack(6)))
