@@ -191,7 +191,9 @@ def test_scene_keys_round_trip_and_validation(tmp_path):
     coating = back.sample.layers[0]
     assert (coating.sld_end_e6_per_A2, coating.mu_end_per_m) == (1.6, 120.0)
     assert math.isnan(back.sample.layers[1].sld_end_e6_per_A2)
-    names = [p.name for p in fwdfit.inference.free_parameters(back)]
+    from fwdfit.inference import free_parameters
+
+    names = [p.name for p in free_parameters(back)]
     assert names == ["layers.coating.sld_end_e6_per_A2", "layers.Al.roughness_mrad"]
     path.write_text(path.read_text().replace("roughness_mrad = 0.7", "roughness_mrad = -0.1", 1))
     with pytest.raises(fwdfit.FwdfitError, match=r"scene.toml: .*roughness_mrad.*-0.1"):

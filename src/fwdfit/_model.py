@@ -155,13 +155,18 @@ def _media(params: ModelParams, wavelength_A, mu_table_per_m, graded=()):
     return sld, mu, sld_end, mu_end
 
 
-def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um):
-    """Mid-plane positions (n_jump,) µm of the step profile's jumps and the jumps in the
-    spectrum-averaged transmission; a graded layer is ``step_pieces`` uniform pieces."""
+def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um, distance_um):
+    """Mid-plane positions (n_jump,) µm of the step profile's jumps, the jumps in the
+    spectrum-averaged transmission, and the shift (µm) of the rays of each jump (None when
+    no layer is graded). A graded layer is ``step_pieces`` uniform pieces whose rays the SLD
+    gradient bends by depth x d(delta)/dx (paraxial prism, at the spectrum's mean lambda^2):
+    they land depth x distance x d(delta)/dx further towards lower delta. Each jump between
+    pieces of different shifts is then two: +t_right at the right piece's shift, -t_left at
+    the left's."""
     step_lam, step_weight, step_table = step_spectrum
-    sld, mu, _, mu_end = _media(params, step_lam, step_table, model.graded)
+    sld, mu, sld_end, mu_end = _media(params, step_lam, step_table, model.graded)
     if not any(model.graded):
-        return boundary_um, jnp.diff(step_weight @ jnp.exp(-mu * depth_um))
+        return boundary_um, jnp.diff(step_weight @ jnp.exp(-mu * depth_um)), None
     medium, fraction, left, at = [0], [0.0], [0], [0.0]  # pieces; jumps: left boundary + fraction
     for i, graded in enumerate(model.graded):
         n = model.step_pieces if graded else 1
@@ -172,9 +177,13 @@ def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um
     medium, fraction, left, at = (np.asarray(v) for v in (medium + [len(model.graded) + 1],
                                                           fraction + [0.0], left, at))
     mu_piece = mu[:, medium] + (mu_end[:, medium] - mu[:, medium]) * fraction
-    jumps = jnp.diff(step_weight @ jnp.exp(-mu_piece * depth_um))
+    transmitted = step_weight @ jnp.exp(-mu_piece * depth_um)
     positions = boundary_um[left] + (boundary_um[left + 1] - boundary_um[left]) * at
-    return positions, jumps
+    thickness = jnp.concatenate([jnp.ones((1,), sld.dtype), params.thickness_um, jnp.ones((1,), sld.dtype)])
+    delta_slope = (step_weight @ step_lam**2) * 1e-6 / (2 * jnp.pi) * (sld_end - sld) / jnp.maximum(thickness, 1e-9)
+    shift = -depth_um * distance_um * delta_slope[medium]  # per piece
+    return (jnp.concatenate([positions, positions]), jnp.concatenate([transmitted[1:], -transmitted[:-1]]),
+            jnp.concatenate([shift[1:], shift[:-1]]))
 
 
 def _boundaries(params: ModelParams, shift_um):
@@ -186,17 +195,19 @@ def _boundaries(params: ModelParams, shift_um):
     return params.centre_um + shift_um + across / jnp.cos(tilt), jnp.tan(tilt), -across * jnp.sin(tilt)
 
 
-def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um):
+def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um, shift_um=None):
     """Bin averages (n_edges-1,) of the mid-plane step profile seen through the aperture.
 
     A ray through mid-plane point x0 reaching detector point X left the aperture at
     x_ap = (x0 L - X (L - Delta)) / Delta; the fraction of the aperture that sees
-    x0 > b is 1 - cdf(2 x_ap / D), integrated over the bin in closed form.
+    x0 > b is 1 - cdf(2 x_ap / D), integrated over the bin in closed form. shift_um
+    (per jump, optional): the jump's rays land that much further (a graded layer's prism).
     """
     _, _, cdf_integral = APERTURES[group.aperture]
     L, D = group.aperture_distance_um, group.aperture_um
     to_sample = L - distance_um
-    s = 2.0 * (boundary_um[:, None] * L - edges_um[None, :] * to_sample) / (distance_um * D)
+    landing = edges_um[None, :] if shift_um is None else edges_um[None, :] - shift_um[:, None]
+    s = 2.0 * (boundary_um[:, None] * L - landing * to_sample) / (distance_um * D)
     K = cdf_integral(s)
     beyond = 1.0 - distance_um * D / (2.0 * to_sample * group.bin_um) * (K[:, :-1] - K[:, 1:])
     return 1.0 + jump @ beyond
@@ -344,8 +355,9 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
     sld, mu, sld_end, mu_end = _media(params, wavelength_A, mu_table_per_m, model.graded)
     boundary, slope, z_mid = _boundaries(params, shift_um)
     edges = first_edge_um + group.bin_um * jnp.arange(group.n_edges)
-    T = T_att = _step_profile(group, *_step_jumps(model, params, boundary, step_spectrum, depth_um),
-                              distance_um, edges)
+    positions, jumps, shifts = _step_jumps(model, params, boundary, step_spectrum, depth_um, distance_um)
+    T = _step_profile(group, positions, jumps, distance_um, edges, shifts)
+    T_att = T if shifts is None else _step_profile(group, positions, jumps, distance_um, edges)
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
     slope_rms = 1e-3 * jnp.concatenate([params.left_roughness_mrad[None], params.roughness_mrad])
     n_window = 2 * group.window + 1
