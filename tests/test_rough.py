@@ -116,6 +116,7 @@ def _free_rough_scene(roughness_mrad=0.0):
 ROUGH_FREE = ("sample.left_roughness_mrad", "layers.Al.roughness_mrad")
 
 
+@pytest.mark.slow
 def test_zero_roughness_is_the_sharp_model():
     """Roughness 0 on the rough code path (a free roughness plans its faces rough) equals the
     sharp model to 1e-10; so does a graded layer whose ends are equal (graded code path)."""
@@ -162,6 +163,7 @@ FIELDS = ("thickness_um", "sld_e6_per_A2", "mu_per_m", "roughness_mrad", "sld_en
           "left_roughness_mrad", "tilt_deg", "centre_um", "distance_mm")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_every_term_finite_in_both_precisions(precision):
     """A rough (1 mrad), graded coating on a rough Al block, Fresnel on, every layer value
