@@ -41,21 +41,41 @@ class AngularMass:
     The aperture (width ``aperture_um``) is seen from a crossing point at lateral
     position ``position_um``, ``source_um`` downstream of the aperture; ``slope`` is
     the interface's slope. Arrays broadcast together.
+
+    tilt (rad, optional): a rough face's local normal is tilted by ``tilt``; the grazing
+    angles are then local ones, a' = a - tilt, of the rays that cross the face (a > 0)
+    and meet the facet from the front (a' > 0), each counted with its true (global)
+    crossing rate a. The rays that meet it from behind (0 < a <= tilt) pass straight
+    (``behind``).
     """
 
-    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float):
+    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float, tilt=None):
         self._cdf, self._moment, _ = APERTURES[aperture]
         to_source = 1.0 / source_um
         self.half_width = 0.5 * aperture_um * to_source  # rad, the angle it subtends / 2
         self.inverse_half_width = (2.0 / aperture_um) * source_um
         self.offset = position_um * to_source - slope  # grazing angle of the aperture centre
+        self.tilt = tilt
+        floor = 0.0
+        if tilt is not None:
+            self.offset = self.offset - tilt
+            floor = jnp.maximum(-tilt, 0.0)
         lo, hi = self.offset - self.half_width, self.offset + self.half_width
-        self.a_min, self.a_max = jnp.maximum(lo, 0.0), jnp.maximum(hi, 0.0)
+        self.a_min, self.a_max = jnp.maximum(lo, floor), jnp.maximum(hi, floor)
 
     def primitive(self, a):
-        """int_{a_lo}^{a} q(slope + t) t dt for a already clipped to the positive range."""
+        """int_{a_lo}^{a} q(slope + t) (t + tilt) dt for a already clipped to the crossing range."""
         v = (a - self.offset) * self.inverse_half_width
-        return self.offset * self._cdf(v) + self.half_width * self._moment(v)
+        weight = self.offset if self.tilt is None else self.offset + self.tilt
+        return weight * self._cdf(v) + self.half_width * self._moment(v)
+
+    def behind(self, grazing_at_edge):
+        """Rays of a rough face that meet its facet from behind (0 < a <= tilt), undeflected,
+        landing left of each edge (global grazing angle ``grazing_at_edge``)."""
+        low = jnp.maximum(self.offset + self.tilt - self.half_width, 0.0)
+        high = jnp.maximum(jnp.minimum(self.offset + self.tilt + self.half_width, self.tilt), low)
+        a = jnp.clip(grazing_at_edge, low, high)
+        return self.primitive(a - self.tilt) - self.primitive(low - self.tilt)
 
     def between(self, a_low, a_high):
         return self.primitive(a_high) - self.primitive(a_low)

@@ -35,6 +35,10 @@ DOMAIN: dict[str, tuple[float, float]] = {
     "sld_e6_per_A2": (-20.0, 20.0),
     "mu_per_m": (0.0, 1e6),
     "mu_per_m_per_A": (0.0, 1e5),
+    "sld_end_e6_per_A2": (-20.0, 20.0),
+    "mu_end_per_m": (0.0, 1e6),
+    "roughness_mrad": (0.0, 20.0),  # RMS slope of a face's normal; kernel windows grow with it
+    "left_roughness_mrad": (0.0, 20.0),
     "aperture_mm": (1e-3, 1e3),
     "aperture_distance_m": (0.01, 100.0),
     "pixel_um": (0.01, 1e4),

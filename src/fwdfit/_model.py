@@ -20,6 +20,8 @@ fitting; float32 agrees to ~1e-4 in T.
 
 from __future__ import annotations
 
+import statistics
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -38,7 +40,10 @@ class ModelParams(eqx.Module):
     """Traced parameters, in the units of the scene keys.
 
     Per layer (n_layer,): thickness_um, sld_e6_per_A2, mu_per_m, mu_per_m_per_A, and
-    density_scale (multiplies the SLD and the whole mu(lambda), tabulated part included).
+    density_scale (multiplies the SLD and the whole mu(lambda), tabulated part included);
+    roughness_mrad (RMS normal slope of the layer's right-hand face); sld_end_e6_per_A2 and
+    mu_end_per_m (right-hand values, used for the layers the model's ``graded`` marks).
+    left_roughness_mrad: the stack's first face.
     Per profile (n_profile,): distance_mm, shift_um (lateral shift of the profile).
     """
 
@@ -47,6 +52,10 @@ class ModelParams(eqx.Module):
     mu_per_m: Float[Array, " layer"]
     mu_per_m_per_A: Float[Array, " layer"]
     density_scale: Float[Array, " layer"]
+    roughness_mrad: Float[Array, " layer"]
+    sld_end_e6_per_A2: Float[Array, " layer"]
+    mu_end_per_m: Float[Array, " layer"]
+    left_roughness_mrad: Float[Array, ""]
     tilt_deg: Float[Array, ""]
     centre_um: Float[Array, ""]
     depth_mm: Float[Array, ""]
@@ -65,6 +74,7 @@ class Interface(eqx.Module):
     left: int = eqx.field(static=True)
     right: int = eqx.field(static=True)
     refracting: bool = eqx.field(static=True)
+    rough: bool = eqx.field(static=True)  # its normal slope is averaged over (``rough_nodes``)
 
 
 class ProfileGroup(eqx.Module):
@@ -87,6 +97,7 @@ class ProfileGroup(eqx.Module):
     # Fresnel partial reflection: Gauss-Legendre on [0, 1] for ``_kernel.fresnel_transfer``; () when off
     fresnel_nodes: tuple[float, ...] = eqx.field(static=True)
     fresnel_weights: tuple[float, ...] = eqx.field(static=True)
+    rough_strata: int = eqx.field(static=True)  # rough faces: equiprobable strata of the normal tilt; 0 when none
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -104,6 +115,8 @@ class ForwardModel(eqx.Module):
     groups: tuple[ProfileGroup, ...]
     interfaces: tuple[Interface, ...]
     n_profiles: int = eqx.field(static=True)
+    graded: tuple[bool, ...] = eqx.field(static=True)  # per layer: SLD and mu linear across it
+    step_pieces: int = eqx.field(static=True)  # uniform pieces of a graded layer in the step profile
 
     def stacked(self, params: ModelParams) -> tuple[tuple[Array, Array], ...]:
         """Pixel-averaged (T, T_att) per group, each (n_group_profiles, n_pixel), rows in
@@ -112,7 +125,7 @@ class ForwardModel(eqx.Module):
         for group in self.groups:
             index = np.asarray(group.index)
             per_profile = jax.vmap(_profile, in_axes=(None, None, None, 0, 0, 0, 0, 0))
-            T_g, T_att_g = per_profile(group, self.interfaces, params, params.distance_mm[index],
+            T_g, T_att_g = per_profile(group, self, params, params.distance_mm[index],
                                        params.shift_um[index], group.first_edge_um,
                                        (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
                                        (group.step_wavelength_A, group.step_weight,
@@ -158,13 +171,53 @@ class ForwardModel(eqx.Module):
         return T, T_att
 
 
-def _media(params: ModelParams, wavelength_A, mu_table_per_m):
-    """SLD (n_layer+2,) in 1e-6 Å^-2 and mu (n_lam, n_layer+2) in 1/µm, vacuum at both ends."""
+def _media(params: ModelParams, wavelength_A, mu_table_per_m, graded=()):
+    """SLD (n_layer+2,) in 1e-6 Å^-2 and mu (n_lam, n_layer+2) in 1/µm, vacuum at both ends:
+    (sld, mu) at each layer's left-hand side, then at its right-hand side (the same arrays
+    unless a layer is ``graded``)."""
     zero = jnp.zeros((1,), params.sld_e6_per_A2.dtype)
-    sld = jnp.concatenate([zero, params.density_scale * params.sld_e6_per_A2, zero])
+    pad = lambda values: jnp.concatenate([zero, params.density_scale * values, zero])
+    sld = pad(params.sld_e6_per_A2)
     mu = params.density_scale * (params.mu_per_m + params.mu_per_m_per_A * wavelength_A[:, None]
                                  + mu_table_per_m)
-    return sld, jnp.pad(mu * 1e-6, ((0, 0), (1, 1)))
+    mu = jnp.pad(mu * 1e-6, ((0, 0), (1, 1)))
+    if not any(graded):
+        return sld, mu, sld, mu
+    mask = np.asarray(graded)
+    sld_end = pad(jnp.where(mask, params.sld_end_e6_per_A2, params.sld_e6_per_A2))
+    mu_end = mu + 1e-6 * pad(jnp.where(mask, params.mu_end_per_m - params.mu_per_m, 0.0))
+    return sld, mu, sld_end, mu_end
+
+
+def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um, distance_um):
+    """Mid-plane positions (n_jump,) µm of the step profile's jumps, the jumps in the
+    spectrum-averaged transmission, and the shift (µm) of the rays of each jump (None when
+    no layer is graded). A graded layer is ``step_pieces`` uniform pieces whose rays the SLD
+    gradient bends by depth x d(delta)/dx (paraxial prism, at the spectrum's mean lambda^2):
+    they land depth x distance x d(delta)/dx further towards lower delta. Each jump between
+    pieces of different shifts is then two: +t_right at the right piece's shift, -t_left at
+    the left's."""
+    step_lam, step_weight, step_table = step_spectrum
+    sld, mu, sld_end, mu_end = _media(params, step_lam, step_table, model.graded)
+    if not any(model.graded):
+        return boundary_um, jnp.diff(step_weight @ jnp.exp(-mu * depth_um)), None
+    medium, fraction, left, at = [0], [0.0], [0], [0.0]  # pieces; jumps: left boundary + fraction
+    for i, graded in enumerate(model.graded):
+        n = model.step_pieces if graded else 1
+        medium += [i + 1] * n
+        fraction += list((np.arange(n) + 0.5) / n)
+        left += [i] * n
+        at += list(np.arange(1, n + 1) / n)
+    medium, fraction, left, at = (np.asarray(v) for v in (medium + [len(model.graded) + 1],
+                                                          fraction + [0.0], left, at))
+    mu_piece = mu[:, medium] + (mu_end[:, medium] - mu[:, medium]) * fraction
+    transmitted = step_weight @ jnp.exp(-mu_piece * depth_um)
+    positions = boundary_um[left] + (boundary_um[left + 1] - boundary_um[left]) * at
+    thickness = jnp.concatenate([jnp.ones((1,), sld.dtype), params.thickness_um, jnp.ones((1,), sld.dtype)])
+    delta_slope = (step_weight @ step_lam**2) * 1e-6 / (2 * jnp.pi) * (sld_end - sld) / jnp.maximum(thickness, 1e-9)
+    shift = -depth_um * distance_um * delta_slope[medium]  # per piece
+    return (jnp.concatenate([positions, positions]), jnp.concatenate([transmitted[1:], -transmitted[:-1]]),
+            jnp.concatenate([shift[1:], shift[:-1]]))
 
 
 def _boundaries(params: ModelParams, shift_um):
@@ -176,17 +229,19 @@ def _boundaries(params: ModelParams, shift_um):
     return params.centre_um + shift_um + across / jnp.cos(tilt), jnp.tan(tilt), -across * jnp.sin(tilt)
 
 
-def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um):
+def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um, shift_um=None):
     """Bin averages (n_edges-1,) of the mid-plane step profile seen through the aperture.
 
     A ray through mid-plane point x0 reaching detector point X left the aperture at
     x_ap = (x0 L - X (L - Delta)) / Delta; the fraction of the aperture that sees
-    x0 > b is 1 - cdf(2 x_ap / D), integrated over the bin in closed form.
+    x0 > b is 1 - cdf(2 x_ap / D), integrated over the bin in closed form. shift_um
+    (per jump, optional): the jump's rays land that much further (a graded layer's prism).
     """
     _, _, cdf_integral = APERTURES[group.aperture]
     L, D = group.aperture_distance_um, group.aperture_um
     to_sample = L - distance_um
-    s = 2.0 * (boundary_um[:, None] * L - edges_um[None, :] * to_sample) / (distance_um * D)
+    landing = edges_um[None, :] if shift_um is None else edges_um[None, :] - shift_um[:, None]
+    s = 2.0 * (boundary_um[:, None] * L - landing * to_sample) / (distance_um * D)
     K = cdf_integral(s)
     beyond = 1.0 - distance_um * D / (2.0 * to_sample * group.bin_um) * (K[:, :-1] - K[:, 1:])
     return 1.0 + jump @ beyond
@@ -230,28 +285,33 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
 
 
 def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, depth_um,
-                     refracting: bool, edges_um):
+                     refracting: bool, rough: bool, edges_um):
     """Cumulative kernels (T, T_att), each (n_window_edges,), of one crossing direction.
 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
-    at z = 0, its slope, its z-centre, mu before and after (n_lam,) and
-    k = 2 (delta_after - delta_before) (n_lam,). Each term is summed over depth
-    nodes aligned with its own kinks (``_kink_aligned_depths``). The kernel replaces the
-    crossing rays' step assignment by their true path in its own wavelength quadrature,
-    so that an interface without contrast adds exactly nothing.
+    at z = 0, its slope, its z-centre, mu before and after (n_lam,),
+    k = 2 (delta_after - delta_before) (n_lam,) and the RMS slope of the face's normal
+    (rad). Each term is summed over depth nodes aligned with its own kinks
+    (``_kink_aligned_depths``). The kernel replaces the crossing rays' step assignment by
+    their true path in its own wavelength quadrature, so that an interface without
+    contrast adds exactly nothing. A rough face's deflected rays are averaged over its
+    normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
+    leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
+    straight (``AngularMass``).
     """
-    boundary, slope, z_mid, mu_from, mu_to, k = side
+    boundary, slope, z_mid, mu_from, mu_to, k, slope_rms = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
     L = group.aperture_distance_um
 
-    def mass_at(z):
+    def mass_at(z, tilt=None):
         source_to_z = L - distance_um + z
-        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um)
+        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um, tilt)
 
-    def nodes(kinks, aim):
+    def nodes(kinks, aim, tilt=None):
         """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
-        z, dz = _kink_aligned_depths(mass_at, kinks, aim, distance_um, z_lo, z_hi, group)
-        return z, dz * L / (L - distance_um + z), mass_at(z), aim[..., None, :] / (distance_um - z)
+        z, dz = _kink_aligned_depths(lambda z: mass_at(z, tilt), kinks, aim, distance_um, z_lo, z_hi, group)
+        node_tilt = None if tilt is None else tilt[..., None]
+        return z, dz * L / (L - distance_um + z), mass_at(z, node_tilt), aim[..., None, :] / (distance_um - z)
 
     per_lam = (-1, 1, 1)  # per-wavelength values against (N, e) or (l, N, e) nodes
     mu_from_l, mu_to_l = mu_from.reshape(per_lam), mu_to.reshape(per_lam)
@@ -268,23 +328,56 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     attenuation = jnp.sum(jnp.tensordot(wavelength_weight, true_path(z), 1) * scale * straight, axis=-2) - stepped
     if not refracting:
         return attenuation, attenuation
-    k_l = k[:, None]
-    aim_l = jnp.broadcast_to(aim, (k.shape[0],) + aim.shape)  # (l, e)
-    z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, k_l, aim_l > 0), aim_l)  # (l, N, e)
-    refracted, reflected = deflected_cumulative(mass, grazing, k_l[..., None])
     reflected_path = jnp.exp(-mu_from_l * depth_um)
-    deflected = wavelength_weight @ jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale,
-                                            axis=-2)
+    k_l = k[:, None]
+    if rough:  # a leading axis of normal tilts (t, l, 1): nodes (t, l, N, e), sums (t, l, e)
+        tilt = slope_rms * _tilt_quantiles(group.rough_strata, k.shape[0])[..., None]
+        tilt_weight = np.full(group.rough_strata, 1.0 / group.rough_strata)
+        aim_l = jnp.broadcast_to(aim, tilt.shape[:1] + k.shape + aim.shape)
+        right_of_interface = aim_l > tilt * distance_um
+        shifted = lambda kinks: lambda m: tuple(angle + tilt for angle in kinks(m))  # local -> global angles
+    else:
+        tilt = tilt_weight = None
+        aim_l = jnp.broadcast_to(aim, k.shape + aim.shape)  # (l, e)
+        right_of_interface = aim_l > 0
+        shifted = lambda kinks: kinks
+
+    def summed(values):  # over tilts (if rough) and wavelengths: (..., l, e) -> (e,)
+        values = wavelength_weight @ values if tilt is None else jnp.einsum("t,l,tle->e", tilt_weight,
+                                                                            wavelength_weight, values)
+        return values
+
+    z, scale, mass, grazing = nodes(shifted(lambda m: deflected_kinks(m, k_l, right_of_interface)), aim_l, tilt)
+    local = grazing if tilt is None else grazing - tilt[..., None]
+    refracted, reflected = deflected_cumulative(mass, local, k_l[..., None])
+    if tilt is not None:  # rays that meet their facet from behind pass straight
+        refracted = refracted + mass.behind(grazing)
+    deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
     if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks
-        z, scale, mass, grazing = nodes(lambda m: fresnel_kinks(m, k_l, aim_l > 0), aim_l)
-        lost, gained = fresnel_transfer(mass, grazing, k_l[..., None], group.fresnel_nodes,
+        z, scale, mass, grazing = nodes(shifted(lambda m: fresnel_kinks(m, k_l, right_of_interface)), aim_l, tilt)
+        local = grazing if tilt is None else grazing - tilt[..., None]
+        lost, gained = fresnel_transfer(mass, local, k_l[..., None], group.fresnel_nodes,
                                         group.fresnel_weights)
-        deflected = deflected + wavelength_weight @ jnp.sum(
-            (reflected_path * gained - true_path(z) * lost) * scale, axis=-2)
+        deflected = deflected + summed(jnp.sum((reflected_path * gained - true_path(z) * lost) * scale, axis=-2))
     return deflected - stepped, attenuation
 
 
-def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, shift_um,
+def _tilt_quantiles(n_strata: int, n_lam: int) -> np.ndarray:
+    """Standard-normal tilts (n_strata, n_lam) of equal weight: stratum i of wavelength node j at
+    probability (i + f_j) / n_strata, the fractions f_j spread over (0, 1) in van der Corput order,
+    so that the wavelength sum sees n_strata * n_lam distinct tilts; scaled to unit variance."""
+    def van_der_corput(j):
+        value, base = 0.0, 0.5
+        while j:
+            value, j, base = value + base * (j & 1), j >> 1, base / 2
+        return value
+    fractions = (np.array([van_der_corput(j) for j in range(n_lam)]) + 0.5 / n_lam) % 1.0
+    probability = (np.arange(n_strata)[:, None] + fractions[None, :]) / n_strata
+    tilts = np.vectorize(statistics.NormalDist().inv_cdf)(probability)
+    return tilts / np.sqrt(np.mean(tilts**2))
+
+
+def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, distance_mm, shift_um,
              first_edge_um, spectrum, step_spectrum):
     """(T, T_att) bin averages (n_edges-1,) on the padded sub-pixel grid of one profile.
 
@@ -293,34 +386,39 @@ def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, 
     """
     wavelength_A, wavelength_weight, mu_table_per_m = spectrum
     distance_um, depth_um = distance_mm * 1e3, params.depth_mm * 1e3
-    sld, mu = _media(params, wavelength_A, mu_table_per_m)
+    sld, mu, sld_end, mu_end = _media(params, wavelength_A, mu_table_per_m, model.graded)
     boundary, slope, z_mid = _boundaries(params, shift_um)
     edges = first_edge_um + group.bin_um * jnp.arange(group.n_edges)
-    step_lam, step_weight, step_table = step_spectrum
-    transmitted = step_weight @ jnp.exp(-_media(params, step_lam, step_table)[1] * depth_um)  # (n_layer+2,)
-    T = T_att = _step_profile(group, boundary, jnp.diff(transmitted), distance_um, edges)
+    positions, jumps, shifts = _step_jumps(model, params, boundary, step_spectrum, depth_um, distance_um)
+    T = _step_profile(group, positions, jumps, distance_um, edges, shifts)
+    T_att = T if shifts is None else _step_profile(group, positions, jumps, distance_um, edges)
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
+    slope_rms = 1e-3 * jnp.concatenate([params.left_roughness_mrad[None], params.roughness_mrad])
     n_window = 2 * group.window + 1
-    for refracting in (True, False):
-        faces = [f for f in interfaces if f.refracting == refracting]
+    for refracting, rough in ((True, False), (True, True), (False, False)):
+        faces = [f for f in model.interfaces if f.refracting == refracting and f.rough == rough]
         if not faces:
             continue
-        # Each face twice: crossing left to right (sign +1) and right to left (-1, mirrored).
+        # Each face twice: crossing left to right (sign +1) and right to left (-1, mirrored),
+        # from the right-hand values of the medium on its left to the left-hand ones on its right.
         sign = jnp.asarray(np.repeat([[1.0, -1.0]], len(faces), axis=0).ravel(), boundary.dtype)
         position = np.repeat([f.position for f in faces], 2)
-        before = np.ravel([(f.left, f.right) for f in faces])
-        after = np.ravel([(f.right, f.left) for f in faces])
+        left, right = np.asarray([f.left for f in faces]), np.asarray([f.right for f in faces])
+        interleave = lambda first, second: jnp.stack([first, second], axis=-1).reshape(first.shape[:-1] + (-1,))
+        sld_before, sld_after = interleave(sld_end[left], sld[right]), interleave(sld[right], sld_end[left])
+        mu_before = interleave(mu_end[:, left], mu[:, right])
+        mu_after = interleave(mu[:, right], mu_end[:, left])
         b = boundary[position]
         landing_um = _landing_centre_um(group, *jax.lax.stop_gradient(
-            (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))),
+            (b, slope, z_mid[position], 2.0 * (sld_after - sld_before) * jnp.max(delta_per_sld))),
             sign, distance_um)
         centre = jnp.round((landing_um - first_edge_um) / group.bin_um).astype(jnp.int32)
         start = jnp.clip(centre - group.window, 0, group.n_edges - n_window)
         window_edges = first_edge_um + group.bin_um * (start[:, None] + jnp.arange(n_window))
-        sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T,
-                 2.0 * (sld[after] - sld[before])[:, None] * delta_per_sld)
-        kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, 0))
-        C_T, C_att = kernel(group, sides, distance_um, wavelength_weight, depth_um, refracting,
+        sides = (sign * b, sign * slope, z_mid[position], mu_before.T, mu_after.T,
+                 2.0 * (sld_after - sld_before)[:, None] * delta_per_sld, slope_rms[position])
+        kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, None, 0))
+        C_T, C_att = kernel(group, sides, distance_um, wavelength_weight, depth_um, refracting, rough,
                             sign[:, None] * window_edges)
         scale = sign[:, None] / group.bin_um
         T = T + _place(scale * jnp.diff(C_T, axis=1), start, T.shape[0])

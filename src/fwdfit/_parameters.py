@@ -28,7 +28,7 @@ import numpy as np
 from . import _registry as registry
 from ._errors import FwdfitError
 from ._model import ModelParams
-from ._plan import MAX_TILT_DEG, initial_params
+from ._plan import MAX_TILT_DEG, initial_params, layer_value
 from ._scene import Scene
 
 LAYER_FIELDS = tuple(registry.part("layers"))  # per-layer model parameters
@@ -137,7 +137,7 @@ def _scene_value(scene: Scene, key: str, target: tuple) -> float:
     _, index = target
     part = registry.BY_KEY[key].part
     if part == "layers":
-        return getattr(scene.sample.layers[index[0]], key)
+        return layer_value(scene.sample.layers[index[0]], key)
     if part == "profiles":
         return getattr(scene.profiles[index[0]], key)
     return getattr(scene.sample, key)

@@ -4,7 +4,8 @@
 z = +Delta, aperture at z = -(L - Delta)). Every face crossing uses exact vector Snell's law with
 total reflection (and optional Fresnel partial reflection); attenuation follows the actual path.
 The open beam is the same rays without the sample (correlated sampling), so T = 1 exactly where no
-traced ray lands. No JAX here on purpose: this module must stay independent of the fast model.
+traced ray lands. A rough face tilts its normal at every crossing by a Gaussian slope; a graded layer
+is a stack of uniform sublayers. No JAX here on purpose: this module must stay independent of the fast model.
 """
 
 from __future__ import annotations
@@ -26,13 +27,34 @@ _FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 @dataclasses.dataclass(frozen=True)
 class ReferenceLayer:
     """One layer: width along x (µm), SLD (1e-6 Å^-2), mu(λ) = mu_per_m + mu_per_m_per_A·λ[Å]
-    + mu_table(λ) (1/m); ``mu_table`` maps wavelengths (n,) Å to 1/m (Bragg edges), or None."""
+    + mu_table(λ) (1/m); ``mu_table`` maps wavelengths (n,) Å to 1/m (Bragg edges), or None.
+
+    roughness_mrad: RMS slope of the normal of the layer's right-hand face. sld_end_e6_per_A2,
+    mu_end_per_m: values at the right-hand side of a graded layer (linear across; None: uniform),
+    traced as ``graded_sublayers`` uniform sublayers with the values at their centres."""
 
     thickness_um: float
     sld_e6_per_A2: float
     mu_per_m: float
     mu_per_m_per_A: float = 0.0
     mu_table: Callable[[np.ndarray], np.ndarray] | None = None
+    roughness_mrad: float = 0.0
+    sld_end_e6_per_A2: float | None = None
+    mu_end_per_m: float | None = None
+
+    def sublayers(self, n: int) -> list[ReferenceLayer]:
+        """The layer as n uniform sublayers (itself when uniform); only the last keeps its roughness."""
+        if self.sld_end_e6_per_A2 is None and self.mu_end_per_m is None:
+            return [self]
+        t = (np.arange(n) + 0.5) / n
+        sld_end = self.sld_e6_per_A2 if self.sld_end_e6_per_A2 is None else self.sld_end_e6_per_A2
+        mu_end = self.mu_per_m if self.mu_end_per_m is None else self.mu_end_per_m
+        return [dataclasses.replace(self, thickness_um=self.thickness_um / n,
+                                    sld_e6_per_A2=float(self.sld_e6_per_A2 + (sld_end - self.sld_e6_per_A2) * f),
+                                    mu_per_m=float(self.mu_per_m + (mu_end - self.mu_per_m) * f),
+                                    roughness_mrad=self.roughness_mrad if i == n - 1 else 0.0,
+                                    sld_end_e6_per_A2=None, mu_end_per_m=None)
+                for i, f in enumerate(t)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +82,7 @@ class _Stack:
     sld_over_pi: np.ndarray  # (K+1,) SLD/π in Å^-2; index K is the vacuum outside
     mu0_per_um: np.ndarray  # (K+1,)
     mu1_per_um_per_A: np.ndarray  # (K+1,)
+    slope_rms_rad: np.ndarray  # (K+1,) RMS normal slope of each face (bounds_um)
 
 
 def _validate(layers, depth_mm, aperture, aperture_mm, aperture_distance_m, distance_mm,
@@ -108,19 +131,31 @@ def _sample_aperture(rng: np.random.Generator, aperture: str, d_um: float, n: in
     return 0.5 * d_um * np.sqrt(rng.random(n)) * np.cos(2.0 * np.pi * rng.random(n))
 
 
-def _trace(stack: _Stack, u, w, a, b, lam, mu_table, r_to, side, rng):
+def _trace(stack: _Stack, u, w, a, b, lam, mu_table, r_to, side, rng, rng_rough):
     """Trace rays sitting on the stack's outer surface, about to enter layer ``r_to``.
 
     ``mu_table``: (n, K+1) tabulated attenuation per ray and medium (1/µm). ``side`` marks a face normal to u (else normal to w); ``rng`` draws Fresnel reflections (None:
-    no partial reflection). Returns the exit state (u, w, a, b, weight), each (n,), with weight 0 for
+    no partial reflection); ``rng_rough`` the normal tilts of rough faces. Returns the exit state (u, w, a, b, weight), each (n,), with weight 0 for
     rays dropped at the event cap, and the number dropped.
+
+    A rough face's normal is tilted at every crossing by a Gaussian slope of its RMS; a ray that
+    meets the tilted facet from behind passes straight, and one that the facet sends back towards
+    the face finishes the depth in the medium it is in (one facet event per crossing, as the model).
     """
     bounds, h, vac = stack.bounds_um, stack.half_depth_um, len(stack.bounds_um) - 1
     out = np.zeros((5, u.size))
     idx, wt, lam2 = np.arange(u.size), np.ones(u.size), lam * lam
     r_from = np.full(u.size, vac)
+    coast = np.zeros(u.size, bool)
     for _ in range(_MAX_EVENTS):
         # Cross the face from r_from to r_to: vector Snell's law with q = n^2 = 1 - λ²·SLD/π.
+        face = np.where(r_from == vac, np.where(a > 0, 0, vac), np.where(a > 0, r_from + 1, r_from))
+        sigma = np.where(side, stack.slope_rms_rad[face], 0.0)
+        tilt = rng_rough.normal(0.0, 1.0, u.size) * sigma if np.any(sigma > 0) else np.zeros(u.size)
+        cos_s, sin_s = np.cos(tilt), np.sin(tilt)
+        a0, b0 = a, b
+        a, b = a0 * cos_s + b0 * sin_s, b0 * cos_s - a0 * sin_s  # the facet's frame
+        behind = side & (np.sign(a) != np.sign(a0))
         vn, vt = np.where(side, a, b), np.where(side, b, a)
         sld_from, sld_to = stack.sld_over_pi[r_from], stack.sld_over_pi[r_to]
         q_from, q_to = 1.0 - lam2 * sld_from, 1.0 - lam2 * sld_to
@@ -130,21 +165,26 @@ def _trace(stack: _Stack, u, w, a, b, lam, mu_table, r_to, side, rng):
         if rng is not None:
             k1, k2 = np.sqrt(q_from) * np.abs(vn), np.sqrt(q_to) * cos_t
             go &= rng.random(u.size) >= ((k1 - k2) / (k1 + k2)) ** 2
-        vt = np.where(go, vt * np.sqrt(q_from / q_to), vt)
-        vn = np.where(go, np.copysign(cos_t, vn), -vn)
+        go |= behind
+        vt = np.where(go & ~behind, vt * np.sqrt(q_from / q_to), vt)
+        vn = np.where(go & ~behind, np.copysign(cos_t, vn), np.where(behind, vn, -vn))
         a, b = np.where(side, vn, vt), np.where(side, vt, vn)
+        a, b = a * cos_s - b * sin_s, b * cos_s + a * sin_s  # back from the facet's frame
         k = np.where(go, r_to, r_from)
+        back = (sigma > 0) & (k != vac) & np.where(face == k, a < 0, a > 0)  # towards the face again
+        coast = np.where(sigma > 0, back, coast)
         gone = k == vac
         out[:, idx[gone]] = np.stack((u, w, a, b, wt))[:, gone]
         keep = ~gone
-        idx, u, w, a, b, wt, lam, lam2, k, mu_table = (
-            x[keep] for x in (idx, u, w, a, b, wt, lam, lam2, k, mu_table))
+        idx, u, w, a, b, wt, lam, lam2, k, mu_table, coast = (
+            x[keep] for x in (idx, u, w, a, b, wt, lam, lam2, k, mu_table, coast))
         if idx.size == 0:
             break
         # Move to the next face of layer k, attenuating along the way.
         with np.errstate(divide="ignore", invalid="ignore"):
             su = np.where(a > 0, (bounds[k + 1] - u) / a, np.where(a < 0, (bounds[k] - u) / a, np.inf))
             sw = np.where(b > 0, (h - w) / b, np.where(b < 0, (-h - w) / b, np.inf))
+        su = np.where(coast, np.inf, su)
         side = su < sw
         s = np.maximum(np.minimum(su, sw), 0.0)
         mu = stack.mu0_per_um[k] + stack.mu1_per_um_per_A[k] * lam + mu_table[np.arange(k.size), k]
@@ -156,7 +196,7 @@ def _trace(stack: _Stack, u, w, a, b, lam, mu_table, r_to, side, rng):
     return out, idx.size
 
 
-def _land(stack, geometry, x_aim, x0, ex, ez, lam, mu_table, rng):
+def _land(stack, geometry, x_aim, x0, ex, ez, lam, mu_table, rng, rng_rough):
     """Detector x (µm) and weight of rays along (x0, z0) + t (ex, ez) aimed at x_aim, through the sample."""
     cos_p, sin_p, centre, z0, delta = geometry
     u0, w0 = (x0 - centre) * cos_p - z0 * sin_p, (x0 - centre) * sin_p + z0 * cos_p
@@ -178,7 +218,8 @@ def _land(stack, geometry, x_aim, x0, ex, ez, lam, mu_table, rng):
     n_layers = stack.bounds_um.size - 1
     layer = np.clip(np.searchsorted(stack.bounds_um, u, side="right") - 1, 0, n_layers - 1)
     layer = np.where(side, np.where(a > 0, 0, n_layers - 1), layer)
-    (u, w, a, b, wt), n_dropped = _trace(stack, u, w, a, b, lam[hit], mu_table[hit], layer, side, rng)
+    (u, w, a, b, wt), n_dropped = _trace(stack, u, w, a, b, lam[hit], mu_table[hit], layer, side, rng,
+                                       rng_rough)
     x, z = centre + u * cos_p + w * sin_p, -u * sin_p + w * cos_p
     dx, dz = a * cos_p + b * sin_p, -a * sin_p + b * cos_p
     forward = dz > 0  # rays reflected back upstream never reach the detector
@@ -192,7 +233,8 @@ def trace_reference(
     aperture: str, aperture_mm: float, aperture_distance_m: float, distance_mm: float,
     spectrum_lambda_A: np.ndarray, spectrum_weight: np.ndarray,
     pixel_edges_um: np.ndarray, psf_fwhm_um: float = 0.0, fresnel: bool = False,
-    n_rays: int = 2_000_000, seed: int = 0, n_batches: int = 8,
+    n_rays: int = 2_000_000, seed: int = 0, n_batches: int = 8, left_roughness_mrad: float = 0.0,
+    graded_sublayers: int = 50,
 ) -> ReferenceResult:
     """Monte Carlo transmission profile of a tilted layer stack, exact 2-D geometric optics.
 
@@ -211,6 +253,9 @@ def trace_reference(
         pixel_edges_um: (n_pixel + 1,) strictly increasing detector pixel edges (µm).
         psf_fwhm_um: FWHM of a Gaussian detector blur (µm); 0 for none.
         fresnel: also reflect partially above the critical angle (Fresnel reflectivity).
+        left_roughness_mrad: RMS normal slope of the stack's first (left) face; the others are
+            the layers' ``roughness_mrad``.
+        graded_sublayers: uniform sublayers a graded layer is traced as.
         n_rays: number of rays traced.
         seed: random seed.
         n_batches: batches for the error estimate (>= 2; >= 5 recommended).
@@ -223,7 +268,12 @@ def trace_reference(
     edges = np.asarray(pixel_edges_um, float)
     _validate(layers, depth_mm, aperture, aperture_mm, aperture_distance_m, distance_mm,
               lam_tab, w_tab, edges, psf_fwhm_um, n_rays, n_batches)
-    layers = [layer for layer in layers if layer.thickness_um > 0]
+    rough_mrad = [left_roughness_mrad] + [layer.roughness_mrad for layer in layers]
+    for i in reversed(range(len(layers))):  # a skipped layer's faces are one: its right-hand one
+        if layers[i].thickness_um == 0:
+            rough_mrad[i] = rough_mrad[i + 1]
+    layers = [dataclasses.replace(layer, roughness_mrad=r) for layer, r in zip(layers, rough_mrad[1:])]
+    layers = [sub for layer in layers if layer.thickness_um > 0 for sub in layer.sublayers(graded_sublayers)]
     thick = np.array([layer.thickness_um for layer in layers], float)
     sld = np.array([layer.sld_e6_per_A2 for layer in layers] + [0.0]) * 1e-6 / np.pi
     stack = _Stack(
@@ -232,8 +282,9 @@ def trace_reference(
         sld_over_pi=sld,
         mu0_per_um=np.array([layer.mu_per_m for layer in layers] + [0.0]) * 1e-6,
         mu1_per_um_per_A=np.array([layer.mu_per_m_per_A for layer in layers] + [0.0]) * 1e-6,
+        slope_rms_rad=1e-3 * np.array([rough_mrad[0]] + [layer.roughness_mrad for layer in layers]),
     )
-    no_sld = dataclasses.replace(stack, sld_over_pi=np.zeros_like(sld))
+    no_sld = dataclasses.replace(stack, sld_over_pi=np.zeros_like(sld), slope_rms_rad=0 * stack.slope_rms_rad)
     cos_p, sin_p = np.cos(np.radians(tilt_deg)), np.sin(np.radians(tilt_deg))
     z_half = 0.5 * thick.sum() * abs(sin_p) + stack.half_depth_um * abs(cos_p)
     delta, source_z = 1e3 * distance_mm, 1e3 * distance_mm - 1e6 * aperture_distance_m
@@ -249,7 +300,7 @@ def trace_reference(
 
     n_pix = edges.size - 1
     sums = np.zeros((3, n_batches * n_pix))  # sample, attenuation-only, open beam
-    rng_rays, rng_fresnel = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+    rng_rays, rng_fresnel, rng_rough = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
     n_dropped = 0
     for start in range(0, n_rays, _CHUNK):
         n = min(_CHUNK, n_rays - start)
@@ -264,8 +315,8 @@ def trace_reference(
         mu_table = 1e-6 * np.stack([layer.mu_table(lam) if layer.mu_table else np.zeros(n)
                                     for layer in layers] + [np.zeros(n)], axis=1)  # (n, K+1) 1/µm
         rays = (x_aim, x_aim - (delta - z0) * ex / ez, ex, ez, lam, mu_table)
-        x_s, w_s, dropped = _land(stack, geometry, *rays, rng_fresnel if fresnel else None)
-        x_a, w_a, _ = _land(no_sld, geometry, *rays, None)
+        x_s, w_s, dropped = _land(stack, geometry, *rays, rng_fresnel if fresnel else None, rng_rough)
+        x_a, w_a, _ = _land(no_sld, geometry, *rays, None, None)
         n_dropped += dropped
         for row, (x, wts) in enumerate(((x_s, w_s), (x_a, w_a), (x_aim, np.ones(n)))):
             pix = np.searchsorted(edges, x + blur, side="right") - 1

@@ -18,6 +18,9 @@ _INF = math.inf
 # (at most MAX_TILT_DEG): kernel windows grow with the tilts the model must serve,
 # and samples are aligned to better than a degree.
 DEFAULT_TILT_BOUND_DEG = 1.0
+# RMS slope of an interface's local normal (mrad): the default upper bound of a free
+# roughness (rough faces' kernel windows grow with it).
+MAX_ROUGHNESS_MRAD = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,7 +35,9 @@ class Quantity:
     by the assembler (profile shifts, normalisation, background). positive: the scene
     value must be > 0. material: a constant a layer's material gives (the reader and
     writer treat it with the material); the others, neither ``from_data`` nor
-    ``material``, the reader reads as they are.
+    ``material``, the reader reads as they are. uniform_from: a layer's value at its
+    right-hand side (graded layers), NaN when the scene leaves it out: the layer is then
+    uniform, and this key's value stands in for it.
     """
 
     part: str
@@ -45,18 +50,24 @@ class Quantity:
     from_data: bool = False
     positive: bool = False
     material: bool = False
+    uniform_from: str | None = None
 
 
 QUANTITIES = (
     Quantity("sample", "tilt_deg", "deg", 0.0, (-DEFAULT_TILT_BOUND_DEG, DEFAULT_TILT_BOUND_DEG), 0.01),
     Quantity("sample", "centre_um", "um", 0.0, (-_INF, _INF), 1.0),
     Quantity("sample", "depth_mm", "mm", None, (0.0, _INF), 0.01, positive=True),
+    Quantity("sample", "left_roughness_mrad", "mrad", 0.0, (0.0, MAX_ROUGHNESS_MRAD), 0.1),
     Quantity("sample", "drift_um_per_mm", "um/mm", 0.0, (-_INF, _INF), 0.01, model="assembler"),
     Quantity("layers", "thickness_um", "um", None, (0.0, _INF), 1.0, from_data=True),
     Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True, material=True),
     Quantity("layers", "mu_per_m", "1/m", None, (0.0, _INF), 1.0, from_data=True, material=True),
     Quantity("layers", "mu_per_m_per_A", "1/(m A)", 0.0, (0.0, _INF), 0.1, material=True),
     Quantity("layers", "density_scale", "", 1.0, (0.0, _INF), 0.01, positive=True),
+    Quantity("layers", "roughness_mrad", "mrad", 0.0, (0.0, MAX_ROUGHNESS_MRAD), 0.1),
+    Quantity("layers", "sld_end_e6_per_A2", "1e-6/A^2", math.nan, (0.0, _INF), 0.1,
+             uniform_from="sld_e6_per_A2"),
+    Quantity("layers", "mu_end_per_m", "1/m", math.nan, (0.0, _INF), 1.0, uniform_from="mu_per_m"),
     Quantity("profiles", "distance_mm", "mm", None, (0.0, _INF), 0.1, positive=True),
     Quantity("profiles", "shift_um", "um", 0.0, (-_INF, _INF), 1.0, model="assembler"),
     Quantity("profiles", "norm", "", 1.0, (0.0, _INF), 0.01, model="assembler", positive=True),

@@ -32,6 +32,9 @@ class Layer:
     """One layer of the stack; ``same_as`` names the earlier layer it is tied to.
 
     ``density_scale`` multiplies the SLD and the whole mu(lambda) (table included).
+    ``roughness_mrad``: RMS slope of the local normal of the layer's right-hand face.
+    ``sld_end_e6_per_A2``, ``mu_end_per_m``: the values at the right-hand side of a graded
+    layer (linear across it from ``sld_e6_per_A2``, ``mu_per_m``); NaN: uniform.
     """
 
     name: str
@@ -42,6 +45,9 @@ class Layer:
     same_as: str | None = None
     material: MaterialConstants | None = None
     density_scale: float = 1.0
+    roughness_mrad: float = 0.0
+    sld_end_e6_per_A2: float = math.nan
+    mu_end_per_m: float = math.nan
 
     @classmethod
     def from_material(cls, name: str, thickness_um: float, material: MaterialConstants,
@@ -58,13 +64,15 @@ class Layer:
 @dataclasses.dataclass(frozen=True)
 class Sample:
     """The layer stack; ``drift_um_per_mm`` shifts each profile by drift * distance_mm
-    (a stage or beam-axis misalignment)."""
+    (a stage or beam-axis misalignment); ``left_roughness_mrad`` is the RMS normal slope of
+    the stack's first (left, vacuum | first layer) face, each layer's own is its right-hand face."""
 
     depth_mm: float
     tilt_deg: float
     centre_um: float
     layers: tuple[Layer, ...]
     drift_um_per_mm: float = 0.0
+    left_roughness_mrad: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

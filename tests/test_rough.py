@@ -1,0 +1,282 @@
+"""Rough faces (RMS slope of the local normal) and graded layers against independent references.
+
+- The model against the exact ray tracer with the same physics (``tests/data/raytrace_rough``,
+  made by its ``make_reference.py``): an Al block whose faces have RMS normal slopes of 0.5 and
+  2 mrad (ICON line at 0.24°, BOA white beam at 0°, 1.1 and 10 mm; Fresnel reflection on, and
+  off on the same rays), and a coating graded in SLD and mu on Al traced as 50 sublayers:
+  RMS of T - T_ref and of T_att - T_att_ref at most 0.002, default settings. The sharp model
+  is far off the rough references (the roughness is seen).
+- Roughness 0 is the sharp model (to 1e-10) on the rough code path, and its derivative in the
+  roughness is finite and continuous there; a graded layer with equal ends is the uniform one.
+- float32 and float64: finite values and gradients with every term on (rough, Fresnel, graded).
+- Fits of the tracer's rough profiles recover the slope within 20 % (slow).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fwdfit
+from fwdfit.scene import FitSpec, dump_scene, load_scene
+from helpers import DATA, rms, load_reference, random_weights, replace_params, weighted_value, weighted_value_and_grad
+
+ROUGH = DATA / "raytrace_rough"
+RMS_TOLERANCE = 0.002
+CASES = [(case, p.name) for case in ("rough0.5_icon", "rough2_icon", "rough2_boa", "graded") if (ROUGH / case / "scene.toml").exists()
+         for p in load_scene(ROUGH / case / "scene.toml").profiles]
+CASE_IDS = [f"{case}/{name}" for case, name in CASES]
+
+
+def _with(scene, *, fresnel=None, roughness_mrad=None):
+    """The scene with Fresnel reflection set and/or every face's roughness replaced."""
+    if fresnel is not None:
+        scene = dataclasses.replace(scene, instruments={k: dataclasses.replace(v, fresnel=fresnel)
+                                                        for k, v in scene.instruments.items()})
+    if roughness_mrad is not None:
+        layers = tuple(dataclasses.replace(l, roughness_mrad=roughness_mrad) for l in scene.sample.layers)
+        scene = dataclasses.replace(scene, sample=dataclasses.replace(
+            scene.sample, layers=layers, left_roughness_mrad=roughness_mrad))
+    return scene
+
+
+def _simulate(scene):
+    T, T_att = eqx.filter_jit(fwdfit.build_model(scene))(fwdfit.initial_params(scene))
+    return {p.name: (np.asarray(t), np.asarray(a)) for p, t, a in zip(scene.profiles, T, T_att)}
+
+
+@pytest.fixture(scope="module")
+def predictions():
+    """``predictions(case, variant)`` -> {profile: (T, T_att)}: the scene as it is
+    (``scene``), Fresnel off (``fresnel_off``) or sharp (``sharp``: roughness 0)."""
+    cache = {}
+
+    def get(case, variant="scene"):
+        if (case, variant) not in cache:
+            scene = load_scene(ROUGH / case / "scene.toml")
+            scene = {"scene": scene, "fresnel_off": _with(scene, fresnel=False),
+                     "sharp": _with(scene, roughness_mrad=0.0)}[variant]
+            cache[case, variant] = _simulate(scene)
+        return cache[case, variant]
+
+    return get
+
+
+def _reference(case, name):
+    ref = load_reference(ROUGH / case, name)
+    table = np.loadtxt(ROUGH / case / f"{name}.csv", delimiter=",", skiprows=1)
+    if table.shape[1] > 5:
+        ref["T_fresnel_off"] = table[:, 5]
+    return ref
+
+
+@pytest.mark.parametrize("case, name", CASES, ids=CASE_IDS)
+def test_transmission_rms(predictions, case, name):
+    """RMS(T - T_ref) and RMS(T_att - T_att_ref) at most 0.002 (rough cases: Fresnel on)."""
+    T, T_att = predictions(case)[name]
+    ref = _reference(case, name)
+    errors = {"T": rms(T - ref["T"]), "T_att": rms(T_att - ref["T_att"])}
+    print(f"{case}/{name}: RMS T {errors['T']:.5f}, T_att {errors['T_att']:.5f} "
+          f"(tracer noise {rms(ref['T_err']):.5f})")
+    assert max(errors.values()) <= RMS_TOLERANCE
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case, name", [c for c in CASES if c[0] != "graded"],
+                         ids=[i for i in CASE_IDS if not i.startswith("graded")])
+def test_rough_faces_without_fresnel_and_the_sharp_model(predictions, case, name):
+    """Fresnel off against the tracer's run without Fresnel on the same rays: RMS at most
+    0.002; the sharp model (roughness 0) at least twice as far off the 2 mrad references."""
+    ref = _reference(case, name)
+    off = rms(predictions(case, "fresnel_off")[name][0] - ref["T_fresnel_off"])
+    print(f"{case}/{name}: RMS T fresnel off {off:.5f}")
+    assert off <= RMS_TOLERANCE
+    if case.startswith("rough2"):
+        sharp = rms(predictions(case, "sharp")[name][0] - ref["T"])
+        print(f"  sharp model {sharp:.5f}")
+        assert sharp > 2 * rms(predictions(case)[name][0] - ref["T"])
+
+
+def _near(scene):
+    """The scene with its first profile (1.1 mm) only: cheap to compile."""
+    return dataclasses.replace(scene, profiles=scene.profiles[:1])
+
+
+def _free_rough_scene(roughness_mrad=0.0):
+    """The ICON 2 mrad case at 1.1 mm with the given roughness, Fresnel on."""
+    return _near(_with(load_scene(ROUGH / "rough2_icon" / "scene.toml"), roughness_mrad=roughness_mrad))
+
+
+ROUGH_FREE = ("sample.left_roughness_mrad", "layers.Al.roughness_mrad")
+
+
+@pytest.mark.slow
+def test_zero_roughness_is_the_sharp_model():
+    """Roughness 0 on the rough code path (a free roughness plans its faces rough) equals the
+    sharp model to 1e-10; so does a graded layer whose ends are equal (graded code path)."""
+    scene = _free_rough_scene(0.0)
+    params = fwdfit.initial_params(scene)
+    rough_model = fwdfit.build_model(scene, free=ROUGH_FREE)
+    assert any(face.rough for face in rough_model.interfaces)
+    sharp = eqx.filter_jit(fwdfit.build_model(scene))(params)[0]
+    rough = eqx.filter_jit(rough_model)(params)[0]
+    assert max(np.max(np.abs(np.asarray(a) - np.asarray(b))) for a, b in zip(rough, sharp)) <= 1e-10
+    graded = _near(load_scene(ROUGH / "graded" / "scene.toml"))
+    uniform = dataclasses.replace(graded, sample=dataclasses.replace(graded.sample, layers=tuple(
+        dataclasses.replace(l, sld_end_e6_per_A2=math.nan, mu_end_per_m=math.nan) for l in graded.sample.layers)))
+    equal_ends = dataclasses.replace(graded, sample=dataclasses.replace(graded.sample, layers=tuple(
+        dataclasses.replace(l, sld_end_e6_per_A2=l.sld_e6_per_A2, mu_end_per_m=l.mu_per_m)
+        for l in graded.sample.layers)))
+    model = fwdfit.build_model(equal_ends)
+    assert all(model.graded)
+    a, b = _simulate(equal_ends), _simulate(uniform)
+    assert max(np.max(np.abs(a[n][i] - b[n][i])) for n in a for i in (0, 1)) <= 1e-10
+
+
+def test_roughness_derivative_is_continuous_at_zero():
+    """The forward-mode derivative of a random functional in the roughness: finite at 0 and
+    within 1 % (of its scale at 0.5 mrad) of its value at 1e-4 mrad; the model moves by less
+    than 1e-6 for 1e-4 mrad."""
+    scene = _free_rough_scene(0.0)
+    model = fwdfit.build_model(scene, free=ROUGH_FREE)
+    params = fwdfit.initial_params(scene)
+    weights = random_weights(scene, jnp.float64)
+
+    def value(sigma):
+        return weighted_value(replace_params(params, left_roughness_mrad=sigma, roughness_mrad=[sigma]),
+                              model, weights)
+
+    slope = eqx.filter_jit(lambda s: jax.jvp(value, (s,), (jnp.ones(()),)))
+    (v0, d0), (v1, d1), (_, d5) = (slope(jnp.asarray(s)) for s in (0.0, 1e-4, 0.5))
+    assert np.isfinite(float(d0)) and abs(float(d5)) > 0
+    assert abs(float(d1) - float(d0)) <= 0.01 * abs(float(d5))
+    assert abs(float(v1) - float(v0)) <= 1e-6 * max(1.0, abs(float(v0)))
+
+
+FIELDS = ("thickness_um", "sld_e6_per_A2", "mu_per_m", "roughness_mrad", "sld_end_e6_per_A2", "mu_end_per_m",
+          "left_roughness_mrad", "tilt_deg", "centre_um", "distance_mm")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_every_term_finite_in_both_precisions(precision):
+    """A rough (1 mrad), graded coating on a rough Al block, Fresnel on, every layer value
+    free, at 1.1 mm: T, T_att and the reverse-mode gradient of a random functional finite in
+    float32 and float64, float32 within 1e-3 of float64. (With the 10 mm profile too, XLA's
+    float32 compile of this gradient took minutes and once crashed: not resolved.)"""
+    base = _near(load_scene(ROUGH / "graded" / "scene.toml"))
+    scene = _with(base, fresnel=True, roughness_mrad=1.0)
+    free = [f"layers.{l.name}.{k}" for l in scene.sample.layers
+            for k in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "roughness_mrad")]
+    free += ["layers.coating.sld_end_e6_per_A2", "layers.coating.mu_end_per_m", "sample.left_roughness_mrad"]
+    results = {}
+    for p in ("float64", precision):
+        with jax.enable_x64(p == "float64"):
+            dtype = jnp.dtype(p)
+            model = fwdfit.build_model(scene, free=free)
+            params = fwdfit.initial_params(scene, dtype=dtype)
+            (_, (T, T_att)), grads = weighted_value_and_grad(params, model, random_weights(scene, dtype))
+            assert T[0].dtype == dtype
+            results[p] = [np.asarray(t, float) for t in T + T_att], grads
+    values, grads = results[precision]
+    assert all(np.all(np.isfinite(v)) for v in values)
+    for field in FIELDS:
+        assert np.all(np.isfinite(np.asarray(getattr(grads, field), float))), field
+    assert np.any(np.asarray(grads.roughness_mrad) != 0) and np.any(np.asarray(grads.sld_end_e6_per_A2) != 0)
+    assert max(np.max(np.abs(a - b)) for a, b in zip(values, results["float64"][0])) <= 1e-3
+
+
+def test_scene_keys_round_trip_and_validation(tmp_path):
+    """The new keys read back field for field through dump_scene; a negative roughness is a
+    one-line error naming the file, key and value."""
+    scene = _with(load_scene(ROUGH / "graded" / "scene.toml"), roughness_mrad=0.7)
+    scene = dataclasses.replace(scene, fit=FitSpec(vary=("layers.coating.sld_end_e6_per_A2",
+                                                         "layers.Al.roughness_mrad")))
+    path = tmp_path / "scene.toml"
+    fwdfit.save_scene(scene, path)
+    back = load_scene(path)
+    assert back.sample.left_roughness_mrad == 0.7
+    assert [l.roughness_mrad for l in back.sample.layers] == [0.7, 0.7]
+    coating = back.sample.layers[0]
+    assert (coating.sld_end_e6_per_A2, coating.mu_end_per_m) == (1.6, 120.0)
+    assert math.isnan(back.sample.layers[1].sld_end_e6_per_A2)
+    from fwdfit.inference import free_parameters
+
+    names = [p.name for p in free_parameters(back)]
+    assert names == ["layers.coating.sld_end_e6_per_A2", "layers.Al.roughness_mrad"]
+    path.write_text(path.read_text().replace("roughness_mrad = 0.7", "roughness_mrad = -0.1", 1))
+    with pytest.raises(fwdfit.FwdfitError, match=r"scene.toml: .*roughness_mrad.*-0.1"):
+        load_scene(path)
+
+
+# --------------------------------------------------------------------------- fits of the tracer's data
+
+FIT_ERROR = 0.003  # Gaussian noise added to the tracer's profiles, and their T_err
+
+
+def fit_tracer_profiles(case: str, vary: tuple[str, ...], start: dict[str, float], seed: int = 1,
+                        scene=None):
+    """Least-squares fit of ``vary`` to the tracer's profiles of ``case`` plus FIT_ERROR noise
+    (``fwdfit.inference``: the compiled predictor and Levenberg-Marquardt, from ``start``;
+    the profiles show one edge, so the whole-profile starts of ``fwdfit.fit`` do not apply).
+    Returns ({name: value}, chi2 per degree of freedom)."""
+    from fwdfit.inference import Predictor, assembler, free_parameters, levenberg_marquardt
+
+    scene = scene or load_scene(ROUGH / case / "scene.toml")
+    rng = np.random.default_rng(seed)
+    data = np.concatenate([_reference(case, p.name)["T"] + rng.normal(0.0, FIT_ERROR, len(p.x_um))
+                           for p in scene.profiles])
+    free = free_parameters(dataclasses.replace(scene, fit=FitSpec(vary=vary)))
+    predictor = Predictor(fwdfit.build_model(scene, free=vary), assembler(scene, free), len(free))
+    residuals = lambda rows: (predictor(rows)[0] - data) / FIT_ERROR
+    u0 = np.array([[start.get(p.name, p.value) for p in free]])
+    typical = np.array([p.step for p in free])
+    solution = levenberg_marquardt(residuals, u0, typical, tolerance=0.01, max_steps=60)
+    best = int(np.argmin(solution.chi2))
+    return dict(zip([p.name for p in free], solution.u[best])), solution.chi2[best] / (data.size - len(free))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case, truth", [("rough0.5_icon", 0.5), ("rough2_icon", 2.0)])
+def test_fit_recovers_the_roughness(case, truth):
+    """Tilt, centre, SLD and the visible face's roughness free, roughness started at 1 mrad
+    (the other values 2 % or 0.02° off): the slope within 20 %, SLD within 5 %, tilt within
+    0.02°, centre within 1 µm, chi2/dof below 1.5."""
+    vary = ("sample.left_roughness_mrad", "sample.tilt_deg", "sample.centre_um", "layers.Al.sld_e6_per_A2")
+    start = {"sample.left_roughness_mrad": 1.0, "sample.tilt_deg": 0.26, "sample.centre_um": 0.5,
+             "layers.Al.sld_e6_per_A2": 2.12}
+    values, chi2 = fit_tracer_profiles(case, vary, start)
+    print(case, values, f"chi2/dof {chi2:.3f}")
+    assert values["sample.left_roughness_mrad"] == pytest.approx(truth, rel=0.2)
+    assert values["layers.Al.sld_e6_per_A2"] == pytest.approx(2.078, rel=0.05)
+    assert abs(values["sample.tilt_deg"] - 0.24) <= 0.02 and abs(values["sample.centre_um"]) <= 1.0
+    assert chi2 <= 1.5
+
+
+@pytest.mark.slow
+def test_graded_data_need_a_graded_layer():
+    """The tracer's graded coating (50 sublayers) plus noise: a graded layer (both ends of SLD
+    and mu free, started uniform at the mean values) reaches chi2/dof below 1.3 with its ends
+    within 10 % of the truth; one uniform layer (SLD and mu free) cannot (chi2/dof above 3)."""
+    graded = load_scene(ROUGH / "graded" / "scene.toml")
+    coating = graded.sample.layers[0]
+    mean = {"sld_e6_per_A2": 2.3, "mu_per_m": 260.0}
+    uniform_layers = (dataclasses.replace(coating, sld_end_e6_per_A2=math.nan, mu_end_per_m=math.nan, **mean),
+                      graded.sample.layers[1])
+    uniform = dataclasses.replace(graded, sample=dataclasses.replace(graded.sample, layers=uniform_layers))
+    keys = ("layers.coating.sld_e6_per_A2", "layers.coating.mu_per_m", "sample.centre_um")
+    ends = ("layers.coating.sld_end_e6_per_A2", "layers.coating.mu_end_per_m")
+    values, chi2 = fit_tracer_profiles("graded", keys + ends, {}, scene=uniform)
+    _, chi2_uniform = fit_tracer_profiles("graded", keys, {}, scene=uniform)
+    print(values, f"graded chi2/dof {chi2:.3f}, uniform {chi2_uniform:.3f}")
+    assert chi2 <= 1.3 and chi2_uniform >= 3.0
+    truth = {"layers.coating.sld_e6_per_A2": 3.0, "layers.coating.sld_end_e6_per_A2": 1.6,
+             "layers.coating.mu_per_m": 400.0, "layers.coating.mu_end_per_m": 120.0}
+    for name, value in truth.items():
+        assert values[name] == pytest.approx(value, rel=0.1), name
