@@ -13,7 +13,7 @@ Compilation dominates: a few seconds for every new static shape of the model (th
 instrument's values, pixels, blur sub-bins, quadrature sizes, interfaces, aperture kind).
 Profiles have 8 pixels, and the default run draws the static choices from three
 configurations at the domain's edges (``FEW_SHAPES``) with every other key over its
-whole domain: 120 valid and 250 broken scenes, about 20 compilations, 30-40 s on two
+whole domain: 60 valid and 150 broken scenes, about 20 compilations, 30-40 s on two
 cores. The slow run (``FWDFIT_FUZZ=many``; the CI runs slow tests, so these wait for the
 variable) draws the static choices from their whole
 domain too: 600 scenes, most compiled anew (~0.7 s each, about 7 min), and 3000 broken
@@ -68,7 +68,7 @@ ALL_SHAPES = st.fixed_dictionaries(dict(
 # The CI runs the slow tests too: the many-example runs wait for FWDFIT_FUZZ=many.
 MANY = pytest.mark.skipif(os.environ.get("FWDFIT_FUZZ") != "many",
                           reason="thousands of scenes: set FWDFIT_FUZZ=many")
-FEW = settings(max_examples=120, deadline=None, derandomize=True, database=None,
+FEW = settings(max_examples=60, deadline=None, derandomize=True, database=None,
                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
@@ -293,7 +293,7 @@ def test_scenes_over_the_domain(case):
     check_outcome(case)
 
 
-@settings(FEW, max_examples=250)
+@settings(FEW, max_examples=150)
 @given(broken_scenes(FEW_SHAPES))
 def test_broken_scenes(case):
     check_outcome(case)

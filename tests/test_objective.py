@@ -43,6 +43,11 @@ def fitter(scene_path):
     return fwdfit.Fitter(scene_path)
 
 
+@pytest.fixture(scope="module")
+def default_fit(fitter):
+    return fitter()
+
+
 def test_log_likelihood_is_the_gaussian_density_of_the_data(fitter):
     """log L = sum of log N(T | T_model, sigma): against the density written out per pixel,
     at two points; the JAX function (the sampler's) gives the same value, and its gradient
@@ -63,7 +68,7 @@ def test_log_likelihood_is_the_gaussian_density_of_the_data(fitter):
     np.testing.assert_allclose(np.asarray(grad), central, rtol=1e-4)
 
 
-def test_the_local_solver_is_passed_in(scene_path, fitter):
+def test_the_local_solver_is_passed_in(scene_path, default_fit):
     """Fitter(solver=...) uses the solver it is given: a wrapper around the default sees
     every local solve (rows of n_free unconstrained coordinates) and gives the default's
     result, which recovers the truth."""
@@ -73,10 +78,9 @@ def test_the_local_solver_is_passed_in(scene_path, fitter):
         calls.append(u.shape)
         return levenberg_marquardt(residual_rows, u, typical, **options)
 
-    default = fitter()
     result = fwdfit.Fitter(scene_path, solver=recording)()
     assert calls and all(shape[1] == len(VARY) for shape in calls)
-    np.testing.assert_allclose(result.values, default.values, rtol=0, atol=0)
+    np.testing.assert_allclose(result.values, default_fit.values, rtol=0, atol=0)
     assert abs(result["layers.Al.thickness_um"][0] - 1000.0) < 3 * result["layers.Al.thickness_um"][1] + 0.5
     assert abs(result["sample.tilt_deg"][0] - TILT_DEG) < 3 * result["sample.tilt_deg"][1] + 0.005
     assert 0.8 < result.chi2_reduced < 1.2
@@ -94,14 +98,14 @@ class _RecordingBlock(LayeredBlock):
         return object.__getattribute__(self, name)
 
 
-def test_the_fit_reaches_the_shape_through_the_geometry(scene_path, fitter):
+def test_the_fit_reaches_the_shape_through_the_geometry(scene_path, default_fit):
     """Every shape-specific step of a fit (model, starts, the scan's tilts, the quality gate's
     edge regions) goes through the geometry passed in; the layered block's edge regions lie
     where the tilted faces project: centre -+ t / (2 cos tilt), moved by distance x tan(tilt)."""
     geometry = _RecordingBlock()
     result = fwdfit.Fitter(scene_path, geometry=geometry)()
     assert geometry.called == {"build_model", "estimate", "at_tilts", "interfaces"}
-    np.testing.assert_allclose(result.values, fitter().values, rtol=0, atol=0)
+    np.testing.assert_allclose(result.values, default_fit.values, rtol=0, atol=0)
     scene = result.scene
     faces, half_width_um = LayeredBlock().interfaces(scene, scene.profiles[0])
     tilt, t, c = np.radians(scene.sample.tilt_deg), scene.sample.layers[0].thickness_um, scene.sample.centre_um
