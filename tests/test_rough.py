@@ -88,11 +88,12 @@ def test_transmission_rms(predictions, case, name):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case, name", [c for c in CASES if c[0] != "graded"],
-                         ids=[i for i in CASE_IDS if not i.startswith("graded")])
+@pytest.mark.parametrize("case, name", [c for c in CASES if c[0] != "graded" and "d01.1mm" in c[1]],
+                         ids=[i for i in CASE_IDS if not i.startswith("graded") and "d01.1mm" in i])
 def test_rough_faces_without_fresnel_and_the_sharp_model(predictions, case, name):
     """Fresnel off against the tracer's run without Fresnel on the same rays: RMS at most
-    0.002; the sharp model (roughness 0) at least twice as far off the 2 mrad references."""
+    0.002; the sharp model (roughness 0) at least twice as far off the 2 mrad references.
+    (1.1 mm profiles only, for the suite's time: the 10 mm ones are checked with Fresnel on.)"""
     ref = _reference(case, name)
     off = rms(predictions(case, "fresnel_off")[name][0] - ref["T_fresnel_off"])
     print(f"{case}/{name}: RMS T fresnel off {off:.5f}")
