@@ -258,19 +258,25 @@ class Fitter:
         if user.shape != (len(free),):
             raise FwdfitError(f"start must have shape ({len(free)},), got {user.shape}")
         complete = np.all(np.isfinite(user)) and all(p.low < v < p.high for p, v in zip(free, user))
-        candidates, n_scanned = global_search(
-            free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM), self.geometry.at_tilts,
-            _CANDIDATES, extra=user[None] if complete else None)
-        self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
-        if self.n_starts > 1:
-            candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
-        u = self._units(candidates)
 
         def solve(u, typical, tolerance):
             return self.solver(lambda rows: objective.residuals(self._values(rows)), u, typical,
                                tolerance=tolerance, max_steps=self.max_steps,
                                progress=_progress_printer(self.progress))
 
+        pinned = np.array([p.name in guess.pinned_names for p in free])
+
+        def settle(row):
+            u = self._units(row[None])
+            return self._values(solve(u, np.where(pinned, self._typical(u), 0.0), _SETTLE_TOLERANCE).u)[0]
+
+        candidates, n_scanned = global_search(
+            free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM), self.geometry.at_tilts,
+            _CANDIDATES, extra=user[None] if complete else None, settle=settle if pinned.any() else None)
+        self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
+        if self.n_starts > 1:
+            candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
+        u = self._units(candidates)
         held = np.array([p.name in guess.held_names for p in free])
         if held.any():
             # Interior interfaces stay where the data put them while the SLDs, which the

@@ -2,8 +2,11 @@
 
 Positions, thicknesses and attenuations come from the data (``_starts``); the tilt
 and the SLDs shape only the refraction fringes, whose chi-square landscape has
-several basins (a wrong-signed tilt traded against a larger SLD, say). The scan
-evaluates chi-square, model and data smoothed alike, on a grid of tilts (refined
+several basins (a wrong-signed tilt traded against a larger SLD, say), and the
+fringes must line up with the data to rank a tilt fairly: where the edges show too
+little contrast to be read to a µm (a weak absorber in noisy bins), what the data pin
+(positions, plateaus) first settles by a local solve at the starting tilt and SLDs.
+The scan then evaluates chi-square, model and data smoothed alike, on a grid of tilts (refined
 around the best few), then on a grid of SLD scales at the best tilts, all through
 the one compiled model; the local solver then starts from the best few points.
 """
@@ -51,12 +54,15 @@ def _inside(free: tuple[FreeParameter, ...], values: np.ndarray) -> np.ndarray:
 
 def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
                   chi2_of: Callable[[np.ndarray], np.ndarray], at_tilts, n_keep: int,
-                  extra: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                  extra: np.ndarray | None = None, settle: Callable[[np.ndarray], np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, int]:
     """The n_keep best distinct starting points (n_keep, n_free) and the number of points evaluated.
 
     chi2_of: rows of free values (m, n_free) -> chi-square (m,). at_tilts: the geometry's
     ``at_tilts(free, estimate, row, tilts)``, a row at trial tilts. extra: further points
-    (e.g. the scene's own start) that compete with the scanned ones.
+    (e.g. the scene's own start) that compete with the scanned ones. settle: a row
+    (n_free,) -> the row with the values the data pin locally fitted, applied to the
+    estimate before the scan.
     """
     chi2_of = _remembered(chi2_of)
     names = [p.name for p in free]
@@ -67,6 +73,8 @@ def global_search(free: tuple[FreeParameter, ...], estimate: Estimate,
     base[unknown_sld] = _UNKNOWN_SLD
     if tilt is not None and math.isnan(base[tilt]):
         base[tilt] = 0.0
+    if settle is not None and (tilt is not None or slds):
+        base = settle(_inside(free, base[None])[0])
     points = _inside(free, base[None] if extra is None else np.concatenate([base[None], extra]))
     chi2 = chi2_of(points)
     if tilt is not None:

@@ -44,6 +44,7 @@ _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
 _FALLBACK_SLD_E6_PER_A2 = 6.0  # SLD assumed for the refraction reach of a layer whose SLD is left out
 _REACH_MARGIN = 1.25  # the window of the intensity balance at an edge: this much beyond the reach
 _BALANCE_SIGNIFICANCE = 4.0  # balanced edges replace the crossings when the widths differ by this many sigma
+_PINNED_FIELDS = ("centre_um", "shift_um", "drift_um_per_mm", "thickness_um", "norm", "mu_per_m")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +55,7 @@ class Estimate:
     values: dict[str, float]
     thickness_names: tuple[str, ...]  # the free thicknesses among them
     held_names: tuple[str, ...] = ()  # free thicknesses read off interior steps (not the thickest layer's)
+    pinned_names: tuple[str, ...] = ()  # free positions and plateau levels, which the data pin directly
 
 
 def _smooth(values: np.ndarray, n: int) -> np.ndarray:
@@ -351,7 +353,8 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     # with the sharpest profile's edges (the far profiles' edges are washed out).
     placed = {i: (left + offset(i) - offset(sharpest), found[i][2]) for i in usable}
     _attenuations(scene, free, T, placed, thickness, model, values)
-    return Estimate(values, tuple(names), tuple(held))
+    pinned = tuple(p.name for p in free if p.target[0] in _PINNED_FIELDS and p.name not in held)
+    return Estimate(values, tuple(names), tuple(held), pinned)
 
 
 def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
