@@ -15,11 +15,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._parameters import FreeParameter
-from ._starts import Estimate
+
+if TYPE_CHECKING:  # _starts sizes its refraction reach with SLD_VALUE_MAX
+    from ._starts import Estimate
 
 _TILT_SPACING_DEG = 0.1  # coarse tilt grid up to 1 degree ...
 _WIDE_TILT_SPACING_DEG = 0.25  # ... and beyond

@@ -25,6 +25,7 @@ import numpy as np
 from ._model import ForwardModel
 from ._parameters import FreeParameter
 from ._scene import Scene
+from ._search import SLD_VALUE_MAX
 
 _MEDIAN_NOISE = 1.25  # noise of a running median over that of a running mean
 _PLATEAU_SIGNIFICANCE = 8.0  # the plateau inside an edge, in the filtered noise: half of it is 4 sigma clear
@@ -41,7 +42,6 @@ _DESPIKE_UM = 25.0  # ... after a running median this wide removes the refractio
 _STEP_SIGNIFICANCE = 5.0  # a segmented step counts when the plateaus differ by this many sigma
 _SHARP_BLUR_FACTOR = 4.0  # profiles blurred at most this much more than the sharpest give the edges
 _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
-_FALLBACK_SLD_E6_PER_A2 = 6.0  # SLD assumed for the refraction reach of a layer whose SLD is left out
 _REACH_MARGIN = 1.25  # the window of the intensity balance at an edge: this much beyond the reach
 _BALANCE_SIGNIFICANCE = 4.0  # balanced edges replace the crossings when the widths differ by this many sigma
 _PINNED_FIELDS = ("centre_um", "shift_um", "drift_um_per_mm", "thickness_um", "norm", "mu_per_m")
@@ -204,10 +204,10 @@ def refraction_reach_um(scene: Scene, profile) -> float:
 
     Rays grazing an outer face below the critical angle of the longest wavelength land
     at most that angle x the lever (distance + depth / 2) beyond the face; outer layers
-    whose SLD is left out count as ``_FALLBACK_SLD_E6_PER_A2``.
+    whose SLD is left out count as the largest SLD the global scan tries.
     """
     layers = scene.sample.layers
-    sld = max(abs(l.density_scale * (_FALLBACK_SLD_E6_PER_A2 if math.isnan(l.sld_e6_per_A2) else l.sld_e6_per_A2))
+    sld = max(abs(l.density_scale * (SLD_VALUE_MAX if math.isnan(l.sld_e6_per_A2) else l.sld_e6_per_A2))
               for l in (layers[0], layers[-1]))
     critical_rad = scene.spectra[profile.spectrum].support_A[1] * math.sqrt(sld * 1e-6 / math.pi)
     lever_um = 1e3 * (profile.distance_mm + 0.5 * scene.sample.depth_mm)
