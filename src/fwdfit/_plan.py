@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -268,7 +269,18 @@ def _ladder(n: int) -> int:
     return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
 
 
-def _split_by_nodes(plans: dict[tuple, list[int]], per_profile) -> list[tuple[tuple, list[int]]]:
+class _PlanKey(NamedTuple):
+    """What profiles must share to share a static plan (pixel grid, kernel window, strata)."""
+
+    instrument: str
+    n_edges: int
+    n_sub: int
+    n_pad: int
+    strata: int
+    window: int
+
+
+def _split_by_nodes(plans: dict[_PlanKey, list[int]], per_profile) -> list[tuple[_PlanKey, list[int]]]:
     """The groups of every plan: its profiles by wavelength node count, most nodes first, a
     class joining the group above it (padded to that group's node count, ``_padded``) while
     the padding adds at most ``_PAD_BUDGET`` wavelength nodes x kernel window edges. A group
@@ -276,7 +288,7 @@ def _split_by_nodes(plans: dict[tuple, list[int]], per_profile) -> list[tuple[tu
     evaluation (time-of-flight bins straddling a Bragg edge have more nodes than the rest)."""
     split = []
     for key, index in plans.items():
-        window_edges = 2 * key[-1] + 1
+        window_edges = 2 * key.window + 1
         counts = {i: len(per_profile[i][1]) for i in index}
         group, top, used = [], None, 0
         for n in sorted(set(counts.values()), reverse=True):
@@ -319,7 +331,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     interfaces = _interfaces(scene, free)
     any_rough = any(face.rough for face in interfaces)
     graded = _graded(scene, free)
-    plans: dict[tuple, list[int]] = {}
+    plans: dict[_PlanKey, list[int]] = {}
     per_profile = []
     depth_nodes = {}
     breaks_A = bragg_breaks_A(scene, accuracy)
@@ -347,7 +359,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         if any_rough:
             lever = 1e3 * (profile.distance_mm + 0.5 * scene.sample.depth_mm) / _ROUGH_LEVER_UM
             strata = math.ceil(rough_mrad / _ROUGH_MRAD_PER_STRATUM * math.sqrt(max(lever, 1.0) * 1e-3 / accuracy))
-        key = (profile.instrument, n_edges, n_sub, n_pad, strata, window)  # window last (_split_by_nodes)
+        key = _PlanKey(profile.instrument, n_edges, n_sub, n_pad, strata, window)
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
         fine_lam, fine_weight = wavelength_quadrature(spectrum, max(_STEP_WAVELENGTHS, 4 * len(lam)), breaks_A)
