@@ -378,8 +378,6 @@ def test_ctrl_c_and_a_non_empty_out_folder_leave_nothing(fits_dirs, tmp_path, ca
                                                          monkeypatch):
     """Ctrl-C while writing the bins leaves neither the folder nor temporary files; a
     non-empty --out folder is refused and left as it was."""
-    import fwdfit._profile_cli
-
     def args(out):
         return tof_args(fits_dirs["sample"], fits_dirs["open"], None, out)
 
@@ -396,7 +394,7 @@ def test_ctrl_c_and_a_non_empty_out_folder_leave_nothing(fits_dirs, tmp_path, ca
         if len(calls) == 3:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(fwdfit._profile_cli, "write_profile_csv", interrupt)
+    monkeypatch.setattr(np, "savetxt", interrupt)
     out = tmp_path / "bins"
     assert main(args(out)) == 130
     assert capsys.readouterr().err == "fwdfit: interrupted\n"

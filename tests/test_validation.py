@@ -24,9 +24,7 @@ import pytest
 import tifffile
 
 import fwdfit
-import fwdfit._fit_output
-import fwdfit._profile_cli
-import fwdfit._simulate
+import fwdfit.inference
 from fwdfit.scene import DOMAIN, MAX_TILT_DEG
 from fwdfit.cli import main
 
@@ -252,18 +250,26 @@ def _fitted_profile(name: str, **overrides):
     return types.SimpleNamespace(**values)
 
 
-def test_write_fit_refuses_non_finite_values(tmp_path, monkeypatch):
+def _fake_result(profiles, value: float, scene=None):
+    """What write_fit reads of a FitResult: one free parameter of ``value``, passed gate."""
+    quality = types.SimpleNamespace(passed=True, summary=lambda: "passed", profiles=(), failing=())
+    return types.SimpleNamespace(
+        names=("sample.tilt_deg",), values=np.array([value]), errors=np.array([0.01]), correlation=np.eye(1),
+        chi2=20.0, dof=20, chi2_reduced=1.0, chi2_per_start=np.array([20.0]), sigma_from_data=False,
+        converged=True, accepted=True, message="", quality=quality, start={"sample.tilt_deg": 0.0},
+        n_steps=3, n_evaluations=10, compile_time_s=0.0, wall_time_s=0.0, warnings=(), profiles=profiles,
+        scene=scene)
+
+
+def test_write_fit_refuses_non_finite_values(tmp_path):
     """write_fit writes nothing when a CSV column or result.json holds NaN (strict JSON)."""
-    monkeypatch.setattr(fwdfit._fit_output, "result_dict", lambda result: {"chi2": 1.0})
     bad_profile = _fitted_profile("b", T_att_err=np.full(21, np.nan))
-    result = types.SimpleNamespace(profiles=(_fitted_profile("a"), bad_profile), scene=None)
     out = tmp_path / "out"
     with pytest.raises(fwdfit.FwdfitError, match="T_att_err is NaN or infinite at 21 of 21"):
-        fwdfit.write_fit(result, out)
+        fwdfit.write_fit(_fake_result((_fitted_profile("a"), bad_profile), 0.1), out)
     assert not out.exists() and leftovers(tmp_path) == []
-    monkeypatch.setattr(fwdfit._fit_output, "result_dict", lambda result: {"chi2": float("nan")})
     with pytest.raises(fwdfit.FwdfitError, match="result.json: a value is NaN"):
-        fwdfit.write_fit(result, out)
+        fwdfit.write_fit(_fake_result((_fitted_profile("a"),), float("nan")), out)
     assert not out.exists() and leftovers(tmp_path) == []
 
 
@@ -324,16 +330,16 @@ def test_ctrl_c_prints_one_line_and_leaves_nothing(scene, tmp_path, capsys, monk
     """Ctrl-C while the second file is written: 'fwdfit: interrupted', exit 130, no output
     folder and no temporary files (before: a 50-line KeyboardInterrupt traceback)."""
     monkeypatch.setattr("fwdfit.simulate", _fake_simulate)
-    real_write = fwdfit._simulate.write_columns
+    real_write = np.savetxt
     calls = []
 
-    def write_then_interrupt(path, columns):
+    def write_then_interrupt(path, *args, **kwargs):
         calls.append(path)
-        real_write(path, columns)
+        real_write(path, *args, **kwargs)
         if len(calls) == 2:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(fwdfit._simulate, "write_columns", write_then_interrupt)
+    monkeypatch.setattr(np, "savetxt", write_then_interrupt)
     out = tmp_path / "out"
     assert main(["simulate", str(scene), "--out", str(out)]) == 130
     assert capsys.readouterr().err == "fwdfit: interrupted\n"
@@ -415,6 +421,8 @@ def test_cut_single_page_tiff_is_refused(tmp_path, capsys):
 def test_profile_outputs_and_ctrl_c(tmp_path, capsys, monkeypatch):
     """The profile command writes 0644 files (umask 022); Ctrl-C while plotting leaves
     neither the table nor temporary files; --out naming a folder is refused first."""
+    import matplotlib.figure
+
     paths = _stacks(tmp_path)
     out = tmp_path / "res" / "profile.csv"
     old = os.umask(0o022)
@@ -428,12 +436,12 @@ def test_profile_outputs_and_ctrl_c(tmp_path, capsys, monkeypatch):
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fwdfit._profile_cli, "plot_radiograph_png", interrupt)
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", interrupt)
     again = tmp_path / "again.csv"
     assert main(_profile_args(paths, again)) == 130
     assert capsys.readouterr().err == "fwdfit: interrupted\n"
     assert not again.exists() and leftovers(tmp_path) == []
-    monkeypatch.setattr(fwdfit._profile_cli, "profile_from_stacks", _unreachable)
+    monkeypatch.setattr(tifffile, "TiffFile", _unreachable)
     (tmp_path / "folder.csv").mkdir()
     assert main(_profile_args(paths, tmp_path / "folder.csv")) == 1
     assert "is a folder, not a file" in one_error_line(capsys)
@@ -442,18 +450,18 @@ def test_profile_outputs_and_ctrl_c(tmp_path, capsys, monkeypatch):
 # ------------------------------------------------------------ plotting and packaging
 
 
-def test_plot_profile_leaves_the_backend_alone(tmp_path):
-    """plot_profile draws on its own Figure: a notebook's backend is not switched to Agg."""
+def test_plots_leave_the_backend_alone(scene, tmp_path):
+    """write_fit draws on Figures of its own: a notebook's backend is not switched to Agg."""
     import matplotlib
 
     previous = matplotlib.get_backend()
     matplotlib.use("svg")
     try:
-        fwdfit._fit_output.plot_profile(tmp_path / "p.png", _fitted_profile("p"))
+        fwdfit.write_fit(_fake_result((_fitted_profile("p"),), 0.1, fwdfit.load_scene(scene)), tmp_path / "out")
         assert matplotlib.get_backend() == "svg"
     finally:
         matplotlib.use(previous)
-    assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "out" / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_every_imported_package_is_declared():
