@@ -3,14 +3,14 @@ a Dask LocalCluster, resumed after an interruption, and its bad input.
 
 The series is made with the exact Monte Carlo reference (``fwdfit.trace_reference_rows``),
 independent of the model: one trace of a 400 µm Al block (2 mm deep, tilt 0.24°, ICON
-geometry, 2.7 Å line, 8.5 mm), each row the reference at its own centre: image i (8 images
+geometry, 2.7 Å line, 8.5 mm), each row the reference at its own centre: image i (4 images
 of 12 rows x 300 pixels of 2.4 µm) is shifted by 4.8 i µm, its rows by a 3 µm sinusoid on
 top, and 0.3 % Gaussian noise is added (no error image: the fit estimates the noise).
 The scene (the template) starts the block at 450 µm, centre 0, tilt 0.15°.
 
 Runtime on two cores: the trace ~2 s, a fit ~5 s per image after one compilation (~10 s,
 cached in this process for the images after it): the resume test ~25 s; the Dask
-comparison (slow: 8 images serially, then on the cluster) ~2 min.
+comparison (slow: 4 images serially, then on the cluster) ~2 min.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from fwdfit.cli import main
 from helpers import gaussian_line_table, image_scene
 
 AL = fwdfit.constants_from_formula("Al", 2.70)
-N_IMAGES, N_ROWS, N_COLS, PIXEL_UM, X0_UM = 8, 12, 300, 2.4, -360.0
+N_IMAGES, N_ROWS, N_COLS, PIXEL_UM, X0_UM = 4, 12, 300, 2.4, -360.0
 SHIFT_UM = 4.8  # image i is shifted by SHIFT_UM * i (two pixels: every image has the same sub-pixel pattern)
 NOISE = 0.003
 
@@ -39,7 +39,7 @@ def series_scene(folder: Path):
 
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
-    """A folder with scene.toml and proj_000.tif ... proj_007.tif; the true row centres
+    """A folder with scene.toml and proj_000.tif ... proj_003.tif; the true row centres
     (N_IMAGES, N_ROWS) µm."""
     folder = tmp_path_factory.mktemp("series")
     lam, weight = gaussian_line_table(2.7, 0.15)
@@ -121,7 +121,7 @@ def test_series_resumes_without_refitting_finished_images(series, tmp_path, caps
 
 @pytest.mark.slow
 def test_dask_run_matches_the_serial_run(series, tmp_path):
-    """Eight images on a LocalCluster of two worker processes: every output number equals the
+    """Four images on a LocalCluster of two worker processes: every output number equals the
     serial run's (the same compiled program on the same data)."""
     pytest.importorskip("distributed")
     folder, truth = series
