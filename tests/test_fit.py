@@ -6,24 +6,21 @@ model that is fitted, plus 1 % Gaussian noise (T_err = 0.01):
 
 - the Al block (1000 µm x 2 mm, periodictable constants for Al at 2.70 g/cm3),
   tilted by 0.24°, centred at x = 3 µm: BOA white beam at 1.1, 8.5 and 34.4 mm and
-  ICON lines at 2.7 and 4.6 Å (circular 40 mm aperture at 5.5 m, 1.1 mm);
-- the five-layer oxide sample of ``tests/data/raytrace/oxide5_boa`` (oxide 2 | oxide 1 |
-  Al | oxide 1 | oxide 2, 80/160/1000 µm, SLD 3.518/3.304/2.078, mu 12/24/1.39 /m,
-  same_as ties), BOA white beam at 1.1, 12.2 and 34.4 mm, tilt 0.
+  ICON lines at 2.7 and 4.6 Å (circular 40 mm aperture at 5.5 m, 1.1 mm).
 
-Each fit starts ~20 % away from the truth in every free parameter (thicknesses +-20 %,
-SLDs -20 %, mu +20 %, tilt 20 % + 0.05° off, centre 3-4 µm off); the oxide fit frees the
-tilt too (truth 0, start 0.05°). Pixel ranges are tight (they cover every pixel where
+The fit starts ~20 % away from the truth in every free parameter (thickness +20 %,
+SLD -20 %, mu +20 %, tilt 20 % + 0.05° off, centre 3-4 µm off). Pixel ranges are tight (they cover every pixel where
 |T - T_att| > 3e-4 in the reference, plus flat open beam and sample on either side),
 which keeps the fits fast. The reference's Monte Carlo noise is RMS 1-2e-3 per pixel
 (at most ~2 % in a few edge pixels at 1.1 mm), well below the added 1 %.
 
-Runtime on 2 CPU cores: tracing ~30 s, Al fit ~25 s, oxide fit ~35 s (marked slow),
-CLI tests ~15 s (each fit includes its compilation).
+Runtime on 2 CPU cores: tracing ~15 s, Al fit ~25 s, CLI tests ~15 s (each fit includes
+its compilation).
 
 The first version of the solver ended in wrong minima from some of these starts (tilt
 ~0, SLD 1.6 or 0); the fit now reads its starts off the data and scans tilt and SLD
-first. ``test_fit_starts.py`` checks starts a user types, none at all, and random ones.
+first. ``test_fit_starts.py`` checks starts a user types, none at all, and random ones,
+on the Al block and the five-layer oxide.
 
 The CLI tests use small scenes: bad input fails before anything is compiled, and
 the one successful ``fwdfit fit`` uses data made by ``fwdfit.simulate``.
@@ -72,35 +69,7 @@ AL_PROFILES = [
     ("icon_l4.6A", "icon", "l46", 1.1, -800.0, 800.0, 3_000_000),
 ]
 
-OXIDE_LAYERS = [  # (name, thickness_um, sld_e6_per_A2, mu_per_m); right side mirrors the left
-    ("oxide2_left", 80.0, 3.518, 12.0),
-    ("oxide1_left", 160.0, 3.304, 24.0),
-    ("Al", 1000.0, 2.078, 1.39),
-]
-OXIDE_TRUTH = {
-    "sample.tilt_deg": 0.0,
-    "sample.centre_um": 0.0,
-    **{f"layers.{name}.thickness_um": t for name, t, _, _ in OXIDE_LAYERS},
-    **{f"layers.{name}.sld_e6_per_A2": s for name, _, s, _ in OXIDE_LAYERS[:2]},
-    **{f"layers.{name}.mu_per_m": m for name, _, _, m in OXIDE_LAYERS},
-}
-OXIDE_START = {
-    "sample.tilt_deg": 0.05,  # truth 0: "20 % off" is nothing, so only the 0.05°
-    "sample.centre_um": -4.0,
-    "layers.oxide2_left.thickness_um": 96.0,
-    "layers.oxide1_left.thickness_um": 128.0,
-    "layers.Al.thickness_um": 1200.0,
-    "layers.oxide2_left.sld_e6_per_A2": 0.8 * 3.518,
-    "layers.oxide1_left.sld_e6_per_A2": 0.8 * 3.304,
-    "layers.oxide2_left.mu_per_m": 1.2 * 12.0,
-    "layers.oxide1_left.mu_per_m": 1.2 * 24.0,
-    "layers.Al.mu_per_m": 1.2 * 1.39,
-}
-OXIDE_PROFILES = [
-    ("d01.1mm", "", "white", 1.1, -950.4, 950.4, 3_000_000),
-    ("d12.2mm", "", "white", 12.2, -1065.6, 1065.6, 4_000_000),
-    ("d34.4mm", "", "white", 34.4, -1248.0, 1248.0, 8_000_000),
-]
+
 
 BOA = dict(aperture="square", aperture_mm=40.0, aperture_distance_m=7.5)
 ICON = dict(aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5)
@@ -174,22 +143,8 @@ def al_scene(folder: Path, start: dict) -> fwdfit.Scene:
                         fwdfit.FitSpec(tuple(start)))
 
 
-def oxide_scene(folder: Path, start: dict) -> fwdfit.Scene:
-    left = [fwdfit.Layer(name, *(start.get(f"layers.{name}.{key}", value)  # not in ``start``: fixed at the truth
-                                 for key, value in zip(("thickness_um", "sld_e6_per_A2", "mu_per_m"), values)))
-            for name, *values in OXIDE_LAYERS]
-    layers = [*left, left[1].tied("oxide1_right"), left[0].tied("oxide2_right")]
-    return fwdfit.Scene(_sample(start, layers), {"": fwdfit.Instrument(pixel_um=PIXEL_UM, **BOA)}, SPECTRA,
-                        _profiles(folder, OXIDE_PROFILES), fwdfit.FitSpec(tuple(start)))
-
-
 def al_reference_layers():
     return [fwdfit.ReferenceLayer(1000.0, AL.sld_e6_per_A2, AL.mu_per_m, AL.mu_per_m_per_A)]
-
-
-def oxide_reference_layers():
-    left = [fwdfit.ReferenceLayer(t, s, m) for _, t, s, m in OXIDE_LAYERS]
-    return left + left[-2::-1]
 
 
 def make_al_case(folder: Path):
@@ -197,12 +152,6 @@ def make_al_case(folder: Path):
     folder.mkdir(parents=True, exist_ok=True)
     truth = _write_profiles(folder, AL_PROFILES, al_reference_layers(), 0.24, 3.0, seed=101)
     return fwdfit.save_scene(al_scene(folder, AL_START), folder / "scene.toml"), truth
-
-
-def make_oxide_case(folder: Path):
-    folder.mkdir(parents=True, exist_ok=True)
-    truth = _write_profiles(folder, OXIDE_PROFILES, oxide_reference_layers(), 0.0, 0.0, seed=202)
-    return fwdfit.save_scene(oxide_scene(folder, OXIDE_START), folder / "scene.toml"), truth
 
 
 # --------------------------------------------------------------------------- small scenes for the CLI
@@ -316,23 +265,19 @@ def test_fit_rejects_bad_starts_option(small_case, tmp_path, capsys):
 
 # --------------------------------------------------------------------------- fits of exact synthetic data
 
-CASES = {
-    # sample: (make the case, truth, start)
-    "al": (make_al_case, AL_TRUTH, AL_START),
-    "oxide": (make_oxide_case, OXIDE_TRUTH, OXIDE_START),
-}
-
-
-def _fit_case(tmp_path_factory, sample):
-    make, truth, start = CASES[sample]
-    path, profiles = make(tmp_path_factory.mktemp(sample))
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """(result, truth, profiles) of the Al block's fit, shared by the tests below; profiles maps
+    each profile name to (x_um, T_true, T_att_true, T_mc_err) of the exact reference."""
+    truth = AL_TRUTH
+    path, profiles = make_al_case(tmp_path_factory.mktemp("al"))
     scene = fwdfit.load_scene(path)
-    for name, value in start.items():  # the scene holds the starting values, not the truth
+    for name, value in AL_START.items():  # the scene holds the starting values, not the truth
         assert _scene_value(scene, name) == pytest.approx(value)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the fit's notes are in result.warnings
         result = fwdfit.fit(scene)
-    print(f"\n{sample}: compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s\n"
+    print(f"\nAl block: compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s\n"
           + _report(result, truth, profiles))
     return result, truth, profiles
 
@@ -355,26 +300,6 @@ def _report(result, truth, profiles) -> str:
     for p in result.profiles:
         rows.append(f"{p.name}: RMS(T_att - T_att_true) = {rms(p.T_att - profiles[p.name][2]):.2e}")
     return "\n".join(rows)
-
-
-@pytest.fixture(scope="module")
-def al_fit(tmp_path_factory):
-    return _fit_case(tmp_path_factory, "al")
-
-
-@pytest.fixture(scope="module")
-def oxide_fit(tmp_path_factory):
-    return _fit_case(tmp_path_factory, "oxide")
-
-
-SAMPLES = ["al", pytest.param("oxide", marks=pytest.mark.slow)]
-
-
-@pytest.fixture(params=SAMPLES)
-def fitted(request):
-    """(result, truth, profiles) of one sample's fit, shared by the tests below; profiles maps
-    each profile name to (x_um, T_true, T_att_true, T_mc_err) of the exact reference."""
-    return request.getfixturevalue(f"{request.param}_fit")
 
 
 def test_fit_converges_without_warnings(fitted):
