@@ -40,6 +40,7 @@ from ._uncertainty import band, central_differences, covariance, errors_and_corr
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
 _CANDIDATES = 3  # starting points handed from the global scan to the local solver
 _SETTLE_TOLERANCE = 0.3  # standard errors: the held phase of the local solver only finds the basin
+_SETTLE_FLOOR = 0.1  # typical steps (0.1 µm, 0.1 /m): rich data pin values far tighter than a scan needs
 _TINY_SLOPE = 1e-12  # d value / d u below this counts as zero (a value deep in a bound's transform)
 _ERROR_STEP = 0.1  # central-difference step for the final Jacobian, in standard errors
 
@@ -177,7 +178,7 @@ class Fitter:
     parameter by more than this many standard errors. progress: print what happens.
     solver: the local least-squares solver, called as ``levenberg_marquardt`` (the
     default) is: ``solver(residual_rows, u (K, n), typical (K, n), *, tolerance,
-    max_steps, progress) -> Solution``, with ``residual_rows`` mapping rows of
+    max_steps, progress, floor=0.0) -> Solution``, with ``residual_rows`` mapping rows of
     unconstrained coordinates (rows, n) to normalised residuals (rows, N).
     geometry: the sample's shape (``_geometry.Geometry``; default ``geometry_of(scene)``).
     Runs in float64.
@@ -259,16 +260,17 @@ class Fitter:
             raise FwdfitError(f"start must have shape ({len(free)},), got {user.shape}")
         complete = np.all(np.isfinite(user)) and all(p.low < v < p.high for p, v in zip(free, user))
 
-        def solve(u, typical, tolerance):
+        def solve(u, typical, tolerance, **options):
             return self.solver(lambda rows: objective.residuals(self._values(rows)), u, typical,
                                tolerance=tolerance, max_steps=self.max_steps,
-                               progress=_progress_printer(self.progress))
+                               progress=_progress_printer(self.progress), **options)
 
         pinned = np.array([p.name in guess.pinned_names for p in free])
 
         def settle(row):
             u = self._units(row[None])
-            return self._values(solve(u, np.where(pinned, self._typical(u), 0.0), _SETTLE_TOLERANCE).u)[0]
+            return self._values(solve(u, np.where(pinned, self._typical(u), 0.0), _SETTLE_TOLERANCE,
+                                      floor=_SETTLE_FLOOR).u)[0]
 
         candidates, n_scanned = global_search(
             free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM), self.geometry.at_tilts,

@@ -83,7 +83,7 @@ def _merge(u, chi2, scale, active) -> None:
 
 def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.ndarray,
                         typical: np.ndarray, *, tolerance: float, max_steps: int,
-                        difference_step: float = 1e-3, independent: bool = False,
+                        floor: float = 0.0, difference_step: float = 1e-3, independent: bool = False,
                         progress: Callable[[int, np.ndarray], None] | None = None) -> Solution:
     """Minimise sum(residuals(u)**2) from each row of u0 (K, n).
 
@@ -95,7 +95,9 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
     typical: (n,) or (K, n) largest scale of each coordinate (one typical step, in u); 0 holds
     a coordinate where it starts.
     tolerance: a problem stops when its step moves no parameter by more than this many
-    standard errors. difference_step: forward-difference step in standard errors.
+    standard errors, or (floor > 0) by more than floor typical steps, whichever is more: a
+    floor ends a solve that only has to find a basin where the data pin the values far
+    tighter than that. difference_step: forward-difference step in standard errors.
     progress: called after every step with (step, chi2 (K,)).
     """
     u = np.array(u0, dtype=float)
@@ -113,6 +115,9 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
     curvature = J.transpose(0, 2, 1) @ J + _TINY_CURVATURE * np.eye(n)
     errors = np.sqrt(np.clip(np.diagonal(np.linalg.pinv(curvature, hermitian=True), axis1=1, axis2=2), 0, None))
     scale = np.minimum(np.where(errors > 0, errors, np.inf), typical)
+    # the stopping limit of each coordinate's step, in standard errors
+    typical = np.broadcast_to(np.asarray(typical, float), (K, n))
+    limit = np.maximum(tolerance, floor * np.divide(typical, scale, out=np.zeros_like(scale), where=scale > 0))
     damping = _INITIAL_DAMPING * np.max(np.diagonal(J.transpose(0, 2, 1) @ J * scale[:, None, :] * scale[:, :, None],
                                                     axis1=1, axis2=2), axis=1)
     growth = np.full(K, 2.0)
@@ -137,7 +142,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
         ratio = (chi2[idx] - chi2_trial) / np.maximum(predicted, 1e-300)
         accepted = finite & (ratio > _MIN_GAIN_RATIO)
         steps[idx] += 1
-        small = np.max(np.abs(delta), axis=1) < tolerance
+        small = np.all(np.abs(delta) < limit[idx], axis=1)
         stale = age[idx] > 0
         # Broyden: the Jacobian learns from every finite trial, accepted or not.
         moved = delta * scale[idx]

@@ -125,14 +125,13 @@ def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
             near = (x >= min(lo, hi) - half) & (x <= max(lo, hi) + half)
             label[near & (label == "")] = f"edge {what}"
         plateaus = sorted(0.5 * (lo + hi) for lo, hi, _ in faces)
-        for i in np.flatnonzero(label == ""):
-            inside = int(np.searchsorted(plateaus, x[i]))
-            label[i] = f"plateau {inside}"
+        rest = np.flatnonzero(label == "")
+        label[rest] = [f"plateau {k}" for k in np.searchsorted(plateaus, x[rest])]
         for what in dict.fromkeys(label):
             where = label == what
             if where.sum() >= 5:
                 regions.append(_region(name, _plateau_name(what, faces), x[where], r[where]))
-                windows.extend(_windows(name, _plateau_name(what, faces), x[where], r[where]))
+                windows.extend(_windows(name, _plateau_name(what, faces), x[where], r[where], _LIMIT_REGION))
     failing = ([r for r in regions + windows if r.fails(_LIMIT_REGION)]
                + [r for r in per_profile if r.fails(_LIMIT_PROFILE)])
     if overall.fails(_LIMIT_OVERALL):
@@ -141,12 +140,17 @@ def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
     return Quality(not failing, overall, tuple(per_profile), tuple(regions), tuple(failing))
 
 
-def _windows(profile: str, what: str, x, z) -> list[Region]:
-    """Stretches of _WINDOW_PIXELS pixels sliding by half their width over one region; they
-    fail only on a systematic misfit (``Region.fails``), which noise rarely mimics."""
+def _windows(profile: str, what: str, x, z, limit: float) -> list[Region]:
+    """The stretches of _WINDOW_PIXELS pixels, sliding by half their width over one region,
+    whose reduced chi-square exceeds ``limit`` (only those can fail; the statistics of all
+    come from cumulative sums). They fail only on a systematic misfit (``Region.fails``),
+    which noise rarely mimics."""
+    squares = np.concatenate([[0.0], np.cumsum(z * z)])
     out = []
     for width in _WINDOW_PIXELS:
-        for start in range(0, len(z) - width + 1, width // 2):
+        starts = np.arange(0, len(z) - width + 1, width // 2)
+        chi2 = squares[starts + width] - squares[starts]
+        for start in starts[chi2 > limit * width]:
             window = slice(start, start + width)
             out.append(dataclasses.replace(_region(profile, what, x[window], z[window]), window=True))
     return out
