@@ -150,6 +150,28 @@ def test_levenberg_marquardt_survives_failing_evaluations():
     assert solution.u[0, 0] == pytest.approx(0.3, rel=1e-7)
 
 
+def test_levenberg_marquardt_floor_stops_within_a_share_of_the_typical_step():
+    """Rich data (residuals / 1e-4, standard errors ~1e-4 of a typical step): with floor 0.1
+    the solve stops once no step exceeds 0.1 typical steps, in fewer evaluations than the
+    tolerance alone needs, within 0.1 typical steps of the optimum; floor 0 reaches it to 1e-7."""
+    t = np.linspace(0.0, 4.0, 60)
+    truth = np.array([2.0, 1.3, 0.5])
+    data = truth[0] * np.exp(-truth[1] * t) + truth[2]
+    counted = []
+
+    def residuals(rows):
+        counted.append(len(rows))
+        return (rows[:, :1] * np.exp(-rows[:, 1:2] * t) + rows[:, 2:3] - data) / 1e-4
+
+    start, typical = np.array([[1.0, 0.8, 0.0]]), np.ones(3)
+    exact = levenberg_marquardt(residuals, start, typical, tolerance=0.3, max_steps=200)
+    exact_rows, counted[:] = sum(counted), []
+    floored = levenberg_marquardt(residuals, start, typical, tolerance=0.3, max_steps=200, floor=0.1)
+    np.testing.assert_allclose(exact.u[0], truth, atol=1e-7)
+    assert np.max(np.abs(floored.u[0] - truth)) < 0.1
+    assert floored.converged[0] and sum(counted) < exact_rows
+
+
 # --------------------------------------------------------------------------- quality gate
 
 
