@@ -3,7 +3,7 @@ a Dask LocalCluster, resumed after an interruption, and its bad input.
 
 The series is made with the exact Monte Carlo reference (``fwdfit.trace_reference_rows``),
 independent of the model: one trace of a 400 µm Al block (2 mm deep, tilt 0.24°, ICON
-geometry, 2.7 Å line, 8.5 mm), each row the reference at its own centre: image i (4 images
+geometry, 2.7 Å line, 8.5 mm), each row the reference at its own centre: image i (2 images
 of 12 rows x 300 pixels of 2.4 µm) is shifted by 4.8 i µm, its rows by a 3 µm sinusoid on
 top, and 0.3 % Gaussian noise is added (no error image: the fit estimates the noise).
 The scene (the template) starts the block at 450 µm, centre 0, tilt 0.15°.
@@ -30,7 +30,7 @@ from fwdfit.cli import main
 from helpers import gaussian_line_table, image_scene
 
 AL = fwdfit.constants_from_formula("Al", 2.70)
-N_IMAGES, N_ROWS, N_COLS, PIXEL_UM, X0_UM = 4, 12, 300, 2.4, -360.0
+N_IMAGES, N_ROWS, N_COLS, PIXEL_UM, X0_UM = 2, 12, 300, 2.4, -360.0
 SHIFT_UM = 4.8  # image i is shifted by SHIFT_UM * i (two pixels: every image has the same sub-pixel pattern)
 NOISE = 0.003
 
@@ -40,7 +40,7 @@ def series_scene(folder: Path):
 
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
-    """A folder with scene.toml and proj_000.tif ... proj_003.tif; the true row centres
+    """A folder with scene.toml and proj_000.tif and proj_001.tif; the true row centres
     (N_IMAGES, N_ROWS) µm."""
     folder = tmp_path_factory.mktemp("series")
     lam, weight = gaussian_line_table(2.7, 0.15)
@@ -81,7 +81,7 @@ def test_series_resumes_without_refitting_finished_images(series, tmp_path, caps
     the second, leaves the first's files untouched, and exits 3 for the one that failed."""
     folder, truth = series
     out = tmp_path / "out"
-    images = [str(folder / f"proj_{i:03d}.tif") for i in range(2)]
+    images = [str(folder / f"proj_{i:03d}.tif") for i in range(N_IMAGES)]
     assert main(["fit-images", str(folder / "scene.toml"), images[0], "--out", str(out), "--workers", "1"]) == 0
     rows = _rows(out / "proj_000")
     assert np.all(rows["flag"] == 0)
@@ -130,12 +130,12 @@ def test_dask_run_matches_the_serial_run(series, tmp_path):
     serial, dask = tmp_path / "serial", tmp_path / "dask"
     pair = tmp_path / "pair"  # the serial run reads a folder, the cluster a glob
     pair.mkdir()
-    for i in range(2):
+    for i in range(N_IMAGES):
         shutil.copy(folder / f"proj_{i:03d}.tif", pair)
     assert main(["fit-images", scene, str(pair), "--out", str(serial), "--workers", "1", "--quiet"]) == 0
-    assert main(["fit-images", scene, str(folder / "proj_00[01].tif"), "--out", str(dask), "--workers", "2",
+    assert main(["fit-images", scene, str(folder / "proj_*.tif"), "--out", str(dask), "--workers", "2",
                  "--quiet"]) == 0
-    for i in range(2):
+    for i in range(N_IMAGES):
         name = f"proj_{i:03d}"
         a, b = _rows(serial / name), _rows(dask / name)
         assert np.max(np.abs(a["centre_um"] - truth[i])) < 0.6
@@ -149,7 +149,7 @@ def test_dask_run_matches_the_serial_run(series, tmp_path):
         for key, value in shared_a.items():
             assert shared_b[key]["value"] == pytest.approx(value["value"], rel=1e-9, abs=1e-12)
     lines = _summary(dask)
-    assert [line["status"] for line in lines] == ["ok"] * 2
+    assert [line["status"] for line in lines] == ["ok"] * N_IMAGES
     shifts = np.array([float(line["sample.centre_um"]) for line in lines])
     assert np.all(np.diff(shifts) > 0)  # the series drifts to the right
 

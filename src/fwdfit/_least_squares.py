@@ -115,8 +115,8 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], u0: np.nd
     curvature = J.transpose(0, 2, 1) @ J + _TINY_CURVATURE * np.eye(n)
     errors = np.sqrt(np.clip(np.diagonal(np.linalg.pinv(curvature, hermitian=True), axis1=1, axis2=2), 0, None))
     scale = np.minimum(np.where(errors > 0, errors, np.inf), typical)
-    # the stopping limit of each coordinate's step, in standard errors
     typical = np.broadcast_to(np.asarray(typical, float), (K, n))
+    # the stopping limit of each coordinate's step, in standard errors
     limit = np.maximum(tolerance, floor * np.divide(typical, scale, out=np.zeros_like(scale), where=scale > 0))
     damping = _INITIAL_DAMPING * np.max(np.diagonal(J.transpose(0, 2, 1) @ J * scale[:, None, :] * scale[:, :, None],
                                                     axis1=1, axis2=2), axis=1)

@@ -130,8 +130,9 @@ def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
         for what in dict.fromkeys(label):
             where = label == what
             if where.sum() >= 5:
-                regions.append(_region(name, _plateau_name(what, faces), x[where], r[where]))
-                windows.extend(_windows(name, _plateau_name(what, faces), x[where], r[where], _LIMIT_REGION))
+                named = _plateau_name(what, faces)
+                regions.append(_region(name, named, x[where], r[where]))
+                windows.extend(_windows(name, named, x[where], r[where], _LIMIT_REGION))
     failing = ([r for r in regions + windows if r.fails(_LIMIT_REGION)]
                + [r for r in per_profile if r.fails(_LIMIT_PROFILE)])
     if overall.fails(_LIMIT_OVERALL):
@@ -142,8 +143,8 @@ def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],
 
 def _windows(profile: str, what: str, x, z, limit: float) -> list[Region]:
     """The stretches of _WINDOW_PIXELS pixels, sliding by half their width over one region,
-    whose reduced chi-square exceeds ``limit`` (only those can fail; the statistics of all
-    come from cumulative sums). They fail only on a systematic misfit (``Region.fails``),
+    whose reduced chi-square exceeds ``limit`` (only those can fail; every window's
+    chi-square comes from one cumulative sum). They fail only on a systematic misfit (``Region.fails``),
     which noise rarely mimics."""
     squares = np.concatenate([[0.0], np.cumsum(z * z)])
     out = []
