@@ -43,7 +43,8 @@ class AngularMass:
     the interface's slope. Arrays broadcast together.
     """
 
-    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float):
+    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float,
+                 floor=None, ceiling=None):
         self._cdf, self._moment, _ = APERTURES[aperture]
         to_source = 1.0 / source_um
         self.half_width = 0.5 * aperture_um * to_source  # rad, the angle it subtends / 2
@@ -51,6 +52,10 @@ class AngularMass:
         self.offset = position_um * to_source - slope  # grazing angle of the aperture centre
         lo, hi = self.offset - self.half_width, self.offset + self.half_width
         self.a_min, self.a_max = jnp.maximum(lo, 0.0), jnp.maximum(hi, 0.0)
+        if floor is not None:  # only the rays above ``floor`` (rad), e.g. those that reach a second face
+            self.a_min = jnp.clip(floor, self.a_min, self.a_max)
+        if ceiling is not None:  # only the rays below ``ceiling`` (rad)
+            self.a_max = jnp.clip(ceiling, self.a_min, self.a_max)
 
     def primitive(self, a):
         """int_{a_lo}^{a} q(slope + t) t dt for a already clipped to the positive range."""
@@ -75,14 +80,15 @@ def _critical(mass: AngularMass, k):
     return jnp.clip(_safe_sqrt(k) * (k > 0), mass.a_min, mass.a_max)
 
 
-def deflected_cumulative(mass: AngularMass, grazing_at_edge, k):
+def deflected_cumulative(mass: AngularMass, grazing_at_edge, k, reflect_k=None):
     """Refracted plus totally reflected crossing rays landing left of each edge.
 
     k = 2 (delta_2 - delta_1) (dimensionless, broadcastable); refracted rays leave
-    at a2 = sqrt(a^2 - k) > 0, reflected ones at -a.
+    at a2 = sqrt(a^2 - k) > 0, reflected ones at -a. reflect_k: rays with a^2 below
+    it are reflected (default k; larger where a face behind a thin layer reflects them).
     Returns (refracted, reflected) cumulative masses.
     """
-    critical = _critical(mass, k)
+    critical = _critical(mass, k if reflect_k is None else reflect_k)
     positive = jnp.maximum(grazing_at_edge, 0.0)
     incoming = _safe_sqrt(positive * positive + k)
     refracted = mass.between(critical, jnp.clip(incoming, critical, mass.a_max))

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from . import _thin
 from ._aperture import APERTURES
 from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, fresnel_kinks, fresnel_transfer,
                       landing_range, straight_cumulative, straight_kinks)
@@ -87,6 +88,9 @@ class ProfileGroup(eqx.Module):
     # Fresnel partial reflection: Gauss-Legendre on [0, 1] for ``_kernel.fresnel_transfer``; () when off
     fresnel_nodes: tuple[float, ...] = eqx.field(static=True)
     fresnel_weights: tuple[float, ...] = eqx.field(static=True)
+    # coupled thin layers: Gauss-Legendre on [0, 1] for the attenuation in the layer; () without
+    thin_nodes: tuple[float, ...] = eqx.field(static=True)
+    thin_weights: tuple[float, ...] = eqx.field(static=True)
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -104,6 +108,7 @@ class ForwardModel(eqx.Module):
     groups: tuple[ProfileGroup, ...]
     interfaces: tuple[Interface, ...]
     n_profiles: int = eqx.field(static=True)
+    thin: tuple[_thin.ThinLayer, ...] = ()  # coupled thin layers; their faces are not in ``interfaces``
 
     def __call__(self, params: ModelParams) -> tuple[list[Array], list[Array]]:
         """Pixel-averaged T and T_att, one array (n_pixel,) per profile, in scene order."""
@@ -111,8 +116,8 @@ class ForwardModel(eqx.Module):
         T_att: list = [None] * self.n_profiles
         for group in self.groups:
             index = np.asarray(group.index)
-            per_profile = jax.vmap(_profile, in_axes=(None, None, None, 0, 0, 0, 0, 0))
-            T_g, T_att_g = per_profile(group, self.interfaces, params, params.distance_mm[index],
+            per_profile = jax.vmap(_profile, in_axes=(None, None, None, None, 0, 0, 0, 0, 0))
+            T_g, T_att_g = per_profile(group, self.interfaces, self.thin, params, params.distance_mm[index],
                                        params.shift_um[index], group.first_edge_um,
                                        (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
                                        (group.step_wavelength_A, group.step_weight,
@@ -158,7 +163,7 @@ def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um)
     return 1.0 + jump @ beyond
 
 
-def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup):
+def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup, extra_cuts=()):
     """Depth nodes and weights (..., DEPTH_PIECES n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
 
     The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
@@ -166,7 +171,8 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     ``kinks(mass)`` angles, which depend on z only through the aperture's view.
     Splitting there, and at the mid-plane z = 0 where the step assignment jumps,
     keeps every piece smooth, so the kernel is smooth in the parameters rather than
-    piecewise linear. aim_um: (..., e) µm, one value per edge.
+    piecewise linear. aim_um: (..., e) µm, one value per edge. extra_cuts: more depths
+    (each broadcastable to aim_um) to split at, one more piece each (a thin layer's kinks).
     """
     def depth_at(angle):  # where the ray to the edge grazes at ``angle``; z_hi if never
         reaches = jnp.abs(angle) > _TINY_ANGLE
@@ -183,6 +189,9 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, zero),
                       jnp.clip(zero, first, second), jnp.maximum(second, zero),
                       jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, 0 <= z_hi
+    if extra_cuts:
+        more = jnp.stack([jnp.clip(jnp.broadcast_to(c, first.shape), z_lo, z_hi) for c in extra_cuts], axis=-2)
+        cuts = jnp.sort(jnp.concatenate([cuts, more], axis=-2), axis=-2)
     # Gauss-Legendre in the log of the lever (distance - z) on every piece: the grazing
     # angle to an edge goes like 1 / lever, which is far from polynomial in z at short
     # distances (the lever runs from distance - depth / 2 to distance + depth / 2).
@@ -196,7 +205,7 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
 
 
 def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, depth_um,
-                     refracting: bool, edges_um):
+                     refracting: bool, edges_um, restrict=None):
     """Cumulative kernels (T, T_att), each (n_window_edges,), of one crossing direction.
 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
@@ -204,20 +213,31 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     k = 2 (delta_after - delta_before) (n_lam,). Each term is summed over depth
     nodes aligned with its own kinks (``_kink_aligned_depths``). The kernel replaces the
     crossing rays' step assignment by their true path in its own wavelength quadrature,
-    so that an interface without contrast adds exactly nothing.
+    so that an interface without contrast adds exactly nothing. restrict: a face of a
+    coupled thin layer keeps only some of its rays (``_thin.face_limits``).
     """
     boundary, slope, z_mid, mu_from, mu_to, k = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
     L = group.aperture_distance_um
+    limits = None if restrict is None else _thin.face_limits(restrict, z_lo, z_hi)
 
-    def mass_at(z):
+    def mass_at(z, deflected=False):
         source_to_z = L - distance_um + z
-        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um)
+        ceiling = None if limits is None else limits(z)[int(deflected)]
+        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um,
+                           ceiling=ceiling)
 
-    def nodes(kinks, aim):
+    def nodes(kinks, aim, deflected=False):
         """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
-        z, dz = _kink_aligned_depths(mass_at, kinks, aim, distance_um, z_lo, z_hi, group)
-        return z, dz * L / (L - distance_um + z), mass_at(z), aim[..., None, :] / (distance_um - z)
+        if restrict is None:
+            cuts = ()
+        else:
+            view = AngularMass(group.aperture, boundary, slope, L - distance_um, group.aperture_um)
+            cuts = _thin.face_cuts(restrict, aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max),
+                                   k[:, None] if deflected else None)
+        z, dz = _kink_aligned_depths(lambda z: mass_at(z, deflected), kinks, aim, distance_um, z_lo, z_hi, group,
+                                     cuts)
+        return z, dz * L / (L - distance_um + z), mass_at(z, deflected), aim[..., None, :] / (distance_um - z)
 
     per_lam = (-1, 1, 1)  # per-wavelength values against (N, e) or (l, N, e) nodes
     mu_from_l, mu_to_l = mu_from.reshape(per_lam), mu_to.reshape(per_lam)
@@ -236,8 +256,14 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         return attenuation, attenuation
     k_l = k[:, None]
     aim_l = jnp.broadcast_to(aim, (k.shape[0],) + aim.shape)  # (l, e)
-    z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, k_l, aim_l > 0), aim_l)  # (l, N, e)
-    refracted, reflected = deflected_cumulative(mass, grazing, k_l[..., None])
+    if limits is None:
+        z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, k_l, aim_l > 0), aim_l)  # (l, N, e)
+        refracted, reflected = deflected_cumulative(mass, grazing, k_l[..., None])
+    else:  # reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
+        reflect_l = restrict[2][:, None]
+        z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, aim_l > 0), aim_l, True)
+        refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
+                                                    reflect_l[..., None])
     reflected_path = jnp.exp(-mu_from_l * depth_um)
     deflected = wavelength_weight @ jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale,
                                             axis=-2)
@@ -250,7 +276,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     return deflected - stepped, attenuation
 
 
-def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, shift_um,
+def _profile(group: ProfileGroup, interfaces, thin, params: ModelParams, distance_mm, shift_um,
              first_edge_um, spectrum, step_spectrum):
     """(T, T_att) bin averages (n_edges-1,) on the padded sub-pixel grid of one profile.
 
@@ -267,6 +293,10 @@ def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, 
     T = T_att = _step_profile(group, boundary, jnp.diff(transmitted), distance_um, edges)
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
     n_window = 2 * group.window + 1
+    if thin:
+        sld = _thin.effective_sld(sld, params.thickness_um, thin)
+        T, T_att = _thin_terms(group, thin, (T, T_att), sld, mu, (boundary, slope, z_mid), distance_um,
+                               wavelength_weight, depth_um, delta_per_sld, first_edge_um)
     for refracting in (True, False):
         faces = [f for f in interfaces if f.refracting == refracting]
         if not faces:
@@ -292,6 +322,61 @@ def _profile(group: ProfileGroup, interfaces, params: ModelParams, distance_mm, 
         T = T + _place(scale * jnp.diff(C_T, axis=1), start, T.shape[0])
         T_att = T_att + _place(scale * jnp.diff(C_att, axis=1), start, T.shape[0])
     return T, T_att
+
+
+def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_um, wavelength_weight,
+                depth_um, delta_per_sld, first_edge_um):
+    """(T, T_att) plus the kernels of the coupled thin layers (``_thin``).
+
+    Per layer B between A and C and per direction (A -> C, and mirrored C -> A): the
+    first face restricted to rays that stay in B, the second restricted to rays that
+    started in B (both ``_crossing_kernel``), and the rays through both faces.
+    """
+    boundary, slope, z_mid = geometry
+    T, T_att = values
+    k = lambda before, after: 2.0 * (sld[np.asarray(after)] - sld[np.asarray(before)])[:, None] * delta_per_sld  # (n, l)
+    faces, through = [], []
+    for layer in thin:
+        w = boundary[layer.layer] - boundary[layer.layer - 1]
+        for sign, first, second, (a, b, c) in ((1.0, layer.layer - 1, layer.layer, (layer.left, layer.layer, layer.right)),
+                                               (-1.0, layer.layer, layer.layer - 1, (layer.right, layer.layer, layer.left))):
+            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0]),
+                      (sign, second, b, c, w, False, k([b], [c])[0])]
+            through.append((sign, first, second, a, b, c, w))
+    n_window = 2 * group.window + 1
+
+    def place(sign, landing_um, cumulative):
+        centre = jnp.round((landing_um - first_edge_um) / group.bin_um).astype(jnp.int32)
+        start = jnp.clip(centre - group.window, 0, group.n_edges - n_window)
+        edges = first_edge_um + group.bin_um * (start[:, None] + jnp.arange(n_window))
+        C_T, C_att = cumulative(sign[:, None] * edges)
+        scale = sign[:, None] / group.bin_um
+        return (_place(scale * jnp.diff(C_T, axis=1), start, T.shape[0]),
+                _place(scale * jnp.diff(C_att, axis=1), start, T.shape[0]))
+
+    sign = jnp.asarray([f[0] for f in faces], boundary.dtype)
+    position, before, after = (np.asarray([f[i] for f in faces]) for i in (1, 2, 3))
+    b = boundary[position]
+    restrict = (jnp.stack([f[4] for f in faces]), jnp.asarray([f[5] for f in faces]),
+                jnp.stack([f[6] for f in faces]))
+    landing = _landing_centre_um(group, *jax.lax.stop_gradient(
+        (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
+    sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after))
+    kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, 0, 0))
+    dT, dT_att = place(sign, landing, lambda edges: kernel(group, sides, distance_um, wavelength_weight,
+                                                           depth_um, True, edges, restrict))
+    T, T_att = T + dT, T_att + dT_att
+
+    sign = jnp.asarray([t[0] for t in through], boundary.dtype)
+    first, second, a, b_, c = (np.asarray([t[i] for t in through]) for i in (1, 2, 3, 4, 5))
+    landing = _landing_centre_um(group, *jax.lax.stop_gradient(  # they leave from the second face
+        (boundary[second], slope, z_mid[first], 2.0 * (sld[c] - sld[a]) * jnp.max(delta_per_sld))), sign, distance_um)
+    sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, a].T, mu[:, b_].T, mu[:, c].T,
+             k(a, b_), k(a, c), jnp.stack([t[6] for t in through]))
+    kernel = jax.vmap(lambda side, edges: _thin.through_kernel(group, side, distance_um, wavelength_weight,
+                                                               depth_um, edges, _kink_aligned_depths))
+    dT, dT_att = place(sign, landing, lambda edges: kernel(sides, edges))
+    return T + dT, T_att + dT_att
 
 
 def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):

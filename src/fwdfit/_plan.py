@@ -23,6 +23,7 @@ from ._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
 from ._scene import Scene
 from ._spectrum import BandSpectrum, GaussianLine, wavelength_quadrature
+from ._thin import ThinLayer
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
@@ -38,6 +39,7 @@ _MAX_BRAGG_BREAKS = 8
 # A band narrower than this fraction of its centre needs no more wavelength nodes than a line.
 _NARROW_BAND_REL = 0.3
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
+_THIN_ANGLE_NODES = 3  # Gauss nodes of the attenuation inside a coupled thin layer (``_thin._weighted_mass``)
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
 _DEPTH_NODES_PER_LOG = 0.5
@@ -119,8 +121,9 @@ def initial_params(scene: Scene, dtype=None) -> ModelParams:
     )
 
 
-def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
-    """Interfaces that need a kernel, skipping zero-thickness layers whose thickness is fixed."""
+def _interfaces(scene: Scene, free: Collection[str], thin: tuple[ThinLayer, ...] = ()) -> tuple[Interface, ...]:
+    """Interfaces that need a kernel, skipping zero-thickness layers whose thickness is fixed
+    and the faces of coupled thin layers (``thin``), which have kernels of their own."""
     layers = scene.sample.layers
     vacuum = dict(sld_e6_per_A2=0.0, mu_per_m=0.0, mu_per_m_per_A=0.0, table=None)
     media = [vacuum] + [dict(sld_e6_per_A2=l.density_scale * l.sld_e6_per_A2,
@@ -138,7 +141,10 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
     kept = [0] + [i + 1 for i, l in enumerate(layers)
                   if l.thickness_um > 0 or f"layers.{name(l)}.thickness_um" in free] + [len(layers) + 1]
     faces = []
+    coupled = {layer.layer for layer in thin}
     for left, right in zip(kept[:-1], kept[1:]):
+        if left in coupled or right in coupled:
+            continue
         refracting = (media[left]["sld_e6_per_A2"] != media[right]["sld_e6_per_A2"]
                       or is_free(left, "sld_e6_per_A2") or is_free(right, "sld_e6_per_A2"))
         attenuating = any(media[left][key] != media[right][key] or is_free(left, key) or is_free(right, key)
@@ -146,6 +152,40 @@ def _interfaces(scene: Scene, free: Collection[str]) -> tuple[Interface, ...]:
         if refracting or attenuating:
             faces.append(Interface(position=right - 1, left=left, right=right, refracting=refracting))
     return tuple(faces)
+
+
+def thin_layers(scene: Scene, free: Collection[str], tilt_range_deg: tuple[float, float]) -> tuple[ThinLayer, ...]:
+    """Layers whose two faces are coupled (``_thin``): thinner than the sideways drift, or free in thickness.
+
+    The drift is depth x the steepest grazing angle (half-divergence, tilt range and the
+    largest critical angle); a free thickness can reach 0. A coupled layer needs thick
+    neighbours: of two adjacent candidates only one is coupled (interior layers first,
+    then the thinnest). None with Fresnel reflection (not combined yet).
+    """
+    layers = scene.sample.layers
+    if any(instrument.fresnel for instrument in scene.instruments.values()):
+        return ()
+    depth_um = scene.sample.depth_mm * 1e3
+    slds = [0.0] + [l.density_scale * l.sld_e6_per_A2 for l in layers]
+    angle = max(0.5 * scene.instruments[p.instrument].aperture_mm / (scene.instruments[p.instrument]
+                                                                      .aperture_distance_m * 1e3)
+                + math.sqrt(scene.spectra[p.spectrum].support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi)
+                for p in scene.profiles) + math.tan(math.radians(max(map(abs, tilt_range_deg))))
+    drift_um = depth_um * angle
+
+    def name(layer):
+        return layer.same_as or layer.name
+
+    free_thickness = [f"layers.{name(l)}.thickness_um" in free for l in layers]
+    kept = [0] + [i + 1 for i, l in enumerate(layers) if l.thickness_um > 0 or free_thickness[i]] + [len(layers) + 1]
+    candidates = [(kept[j - 1], kept[j], kept[j + 1]) for j in range(1, len(kept) - 1)
+                  if free_thickness[kept[j] - 1] or layers[kept[j] - 1].thickness_um < drift_um]
+    candidates.sort(key=lambda c: (c[0] == 0 or c[2] == len(layers) + 1, layers[c[1] - 1].thickness_um))
+    chosen: list[tuple[int, int, int]] = []
+    for candidate in candidates:
+        if all(candidate[1] not in (other[0], other[2]) for other in chosen):
+            chosen.append(candidate)
+    return tuple(ThinLayer(left=a, layer=b, right=c) for a, b, c in sorted(chosen, key=lambda c: c[1]))
 
 
 def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
@@ -209,6 +249,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     if tilt_range_deg is None:
         tilt = scene.sample.tilt_deg
         tilt_range_deg = (-MAX_TILT_DEG, MAX_TILT_DEG) if "sample.tilt_deg" in free else (tilt, tilt)
+    thin = thin_layers(scene, free, tilt_range_deg)
     plans: dict[tuple, list[int]] = {}
     per_profile = []
     depth_nodes = {}
@@ -239,6 +280,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         per_profile.append((first_edge, lam, weight, _mu_tables(scene, lam), fine_lam, fine_weight,
                             _mu_tables(scene, fine_lam)))
     groups = []
+    thin_nodes, thin_weights = _unit_gauss(_THIN_ANGLE_NODES if thin else 0)
     for (instrument_name, n_edges, n_sub, n_pad, window, _), index in plans.items():
         instrument = scene.instruments[instrument_name]
         z_nodes, z_weights = _unit_gauss(max(depth_nodes[i] for i in index))
@@ -251,10 +293,10 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             aperture_distance_um=instrument.aperture_distance_m * 1e6,
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
             n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
-            z_nodes=z_nodes, z_weights=z_weights,
+            z_nodes=z_nodes, z_weights=z_weights, thin_nodes=thin_nodes, thin_weights=thin_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
             first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
             step_mu_table_per_m=stack(6)))
-    return ForwardModel(groups=tuple(groups), interfaces=_interfaces(scene, free),
-                        n_profiles=len(scene.profiles))
+    return ForwardModel(groups=tuple(groups), interfaces=_interfaces(scene, free, thin),
+                        n_profiles=len(scene.profiles), thin=thin)

@@ -1,0 +1,228 @@
+"""A thin layer coupled: rays that cross both of its faces inside the sample.
+
+Independent kernels (``_model._crossing_kernel``) treat each face as if the media on
+either side were semi-infinite. A layer B (width w at the mid-plane) between media A
+and C is thin when rays entering it reach its other face inside the depth, i.e. when
+w is below the sideways drift depth x |angle|. For such a layer the rays are split,
+for each crossing direction (here A -> C, the mirror C -> A alike), into disjoint sets:
+
+- rays from A meeting the first face at depth z that are reflected there, or refract
+  into B and leave the sample's back before reaching the second face (outgoing angle
+  u < w / (z_hi - z)): the first face's own kernel, restricted (``face_limits``);
+  rays refracted into B that the second face reflects (u^2 < k_AC - k_AB) return into
+  A at once in a thin layer and count as reflected there;
+- rays that started in B (entered through the front face) and meet the second face:
+  its own kernel restricted to incoming angles a < w / (z - z_lo);
+- rays from A that cross both faces (``through_kernel``): they leave into C at
+  a_C = sqrt(a^2 - k_AC) from the second face, w further along and w / u deeper, so
+  they land at w + a_C (Delta - z - w / u); their path in B, w / u, weights them by
+  exp(-(mu_B - mu_C) w / u).
+
+Rays of B reflected at a face are followed to the sample's back inside B (one
+reflection: rays guided along the layer by several reflections are not modelled).
+A layer thinner than the neutron's evanescent depth (~0.01 µm) is transparent: its
+SLD fades to the mean of its neighbours' below ``TUNNEL_UM`` (``effective_sld``), so
+that a free thickness going to 0 leaves the interface A | C, smoothly.
+Local frame and units as in ``_kernel``; angles are slopes (rad), lengths µm.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._kernel import AngularMass, deflected_kinks, straight_kinks
+
+TUNNEL_UM = 0.02  # thickness scale of the fade to transparency (evanescent depth ~ lambda / (4 pi theta_c))
+NEWTON_STEPS = 6  # for the incoming angle that lands at an edge after both faces
+_TINY = 1e-12  # µm or rad: keeps w / reach and w / u finite (and 0 for w = 0)
+_NEVER = 1.0  # rad: an angle limit no paraxial ray reaches
+
+
+class ThinLayer(eqx.Module):
+    """A coupled thin layer: media indices ``left`` (A), ``layer`` (B) and ``right`` (C).
+
+    Media are indexed as in ``_model.Interface`` (0 and n_layer+1 vacuum); B's faces are
+    the boundaries ``layer - 1`` and ``layer``.
+    """
+
+    left: int = eqx.field(static=True)
+    layer: int = eqx.field(static=True)
+    right: int = eqx.field(static=True)
+
+
+def effective_sld(sld, thickness_um, thin: tuple[ThinLayer, ...]):
+    """SLD (n_layer+2,) with each thin layer's faded to its neighbours' mean below ``TUNNEL_UM``.
+
+    The weight 1 - exp(-(t / TUNNEL_UM)^2) is smooth, 0 with zero slope at t = 0, and
+    1 within 1e-6 from t = 0.075 µm.
+    """
+    for layer in thin:
+        t = thickness_um[layer.layer - 1]
+        seen = 1.0 - jnp.exp(-jnp.square(t / TUNNEL_UM))
+        mean = 0.5 * (sld[layer.left] + sld[layer.right])
+        sld = sld.at[layer.layer].set(mean + seen * (sld[layer.layer] - mean))
+    return sld
+
+
+def face_limits(restrict, z_lo, z_hi):
+    """Angle limits of a thin layer's face as a function of the crossing depth z.
+
+    restrict = (w, forward, reflect_k): w the layer's width (µm); forward: the face is
+    the first one met (rays from outside, kept while they stay in B: outgoing angle
+    below w / (z_hi - z)); otherwise the second (rays that started in B: incoming angle
+    below w / (z - z_lo)); reflect_k (n_lam,) as in ``deflected_cumulative``. Returns
+    z -> (straight ceiling, deflected-mass ceiling, outgoing ceiling), in rad.
+    """
+    w, forward, _ = restrict
+
+    def limits(z):
+        reach = jnp.maximum(jnp.where(forward, z_hi - z, z - z_lo), _TINY)
+        cut = w / reach
+        return cut, jnp.where(forward, _NEVER, cut), jnp.where(forward, cut, _NEVER)
+
+    return limits
+
+
+def _safe(d):
+    return jnp.where(jnp.abs(d) > _TINY, d, _TINY)
+
+
+def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
+    """Depths where a face's limit (``face_limits``) makes a kink: where the edge's ray meets
+    it (one, like aim) and where it crosses the ends of the fan ``fan`` = (a_min, a_max) seen from z = 0.
+
+    k (n_lam, 1) for refracted rays: the second face's limit is on the incoming angle
+    sqrt(g^2 + k) of the outgoing g = aim / (distance - z), found by a few fixed-point steps.
+    """
+    w, forward, _ = restrict
+    # the first face limits the outgoing angle of refracted rays, sqrt(a^2 - k) at a fan's end
+    out = (lambda a: a) if k is None else (lambda a: jnp.sqrt(jnp.maximum(a * a - k, 0.0)))
+    ends = tuple(jnp.where(forward, z_hi - w / jnp.maximum(out(a), _TINY), z_lo + w / jnp.maximum(a, _TINY))
+                 for a in fan)
+    stays = (w * distance_um - aim * z_hi) / _safe(w - aim)  # aim / (distance - z) = w / (z_hi - z)
+    started = (w * distance_um + aim * z_lo) / _safe(w + aim)  # aim / (distance - z) = w / (z - z_lo)
+    if k is not None:  # left of the face the reflected rays land, at -(incoming angle)
+        started = jnp.where(aim > 0, started, (w * distance_um - aim * z_lo) / _safe(w - aim))
+        for _ in range(3):
+            g = aim / (distance_um - jnp.clip(started, z_lo, z_hi))
+            incoming = jnp.where(aim > 0, jnp.sqrt(jnp.maximum(g * g + k, 0.0)), -g)
+            started = z_lo + w / jnp.maximum(incoming, _TINY)
+    return (jnp.where(forward, stays, started),) + ends
+
+
+def _weighted_mass(mass: AngularMass, angle_of, u_lo, u_hi, c, nodes, weights):
+    """int exp(-c / u) dM(angle_of(u)) over u in [u_lo, u_hi] (by parts, Gauss nodes on [0, 1]).
+
+    exp(-c / u) is the extra attenuation of a path w / u in B; c = (mu_B - mu_C) w. For
+    c = 0 this is the mass between angle_of(u_lo) and angle_of(u_hi), exactly.
+    """
+    def factor(u):
+        return jnp.exp(-c / jnp.maximum(u, _TINY))
+
+    u_lo, u_hi, c = jnp.broadcast_arrays(u_lo, u_hi, c)
+    base = mass.primitive(angle_of(u_lo))
+    along = np.asarray(nodes).reshape((-1,) + (1,) * u_lo.ndim)
+    u = u_lo + (u_hi - u_lo) * along
+    slope = factor(u) * c / jnp.square(jnp.maximum(u, _TINY))  # d factor / du
+    integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(angle_of(u)) - base), 1)
+    return factor(u_hi) * (mass.primitive(angle_of(u_hi)) - base) - (u_hi - u_lo) * integral
+
+
+def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_um, depth_nodes):
+    """Cumulative kernels (T, T_att) (n_window_edges,) of the rays that cross both faces.
+
+    side, in the local frame: the first face's boundary at z = 0, its slope and
+    z-centre, mu of A, B, C (n_lam,), k_AB and k_AC (n_lam,) and the width w (µm).
+    As ``_model._crossing_kernel``, the step assignment of these rays (A, B or C by
+    where the straight ray is at z = 0) is subtracted. depth_nodes:
+    ``_model._kink_aligned_depths``. The attenuation in B is integrated over angle on
+    the group's ``thin_nodes``.
+    """
+    boundary, slope, z_mid, mu_a, mu_b, mu_c, k_ab, k_ac, w = side
+    z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
+    L = group.aperture_distance_um
+    gauss = (group.thin_nodes, group.thin_weights)
+
+    def mass_at(z):
+        return AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um,
+                           floor=w / jnp.maximum(z_hi - z, _TINY))
+
+    def nodes(kinks, aim, cuts):
+        z, dz = depth_nodes(mass_at, kinks, aim, distance_um, z_lo, z_hi, group, cuts)
+        return z, dz * L / (L - distance_um + z), aim[..., None, :] / (distance_um - z)
+
+    per_lam = (-1, 1, 1)
+    aim = edges_um - (boundary + slope * distance_um)  # (e,)
+    transmitted = [wavelength_weight @ jnp.exp(-mu * depth_um) for mu in (mu_a, mu_b, mu_c)]
+
+    # Straight rays (T_att and the step assignment): those reaching the second face, a >= w / (z_hi - z).
+    view = AngularMass(group.aperture, boundary, slope, L - distance_um, group.aperture_um)  # from z = 0
+    reach = face_cuts((w, True, None), aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max))  # a = w / (z_hi - z)
+    in_b = w * distance_um / _safe(w - aim)  # a = w / -z: the ray is in B at z = 0 from here on
+    z, scale, grazing = nodes(straight_kinks, aim, reach + (in_b,))  # (N, e)
+    mass = mass_at(z)
+    end = jnp.clip(grazing, mass.a_min, mass.a_max)
+    split = jnp.clip(w / jnp.maximum(-z, _TINY), mass.a_min, end)  # below: still in B at z = 0
+    base = mass.primitive(mass.a_min)
+    stepped = jnp.where(z > 0, transmitted[0] * (mass.primitive(end) - base),
+                        transmitted[1] * (mass.primitive(split) - base)
+                        + transmitted[2] * (mass.primitive(end) - mass.primitive(split)))
+    stepped = jnp.sum(stepped * scale, axis=-2)
+    outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))  # (l, N, e)
+    c = ((mu_b - mu_c) * w).reshape(per_lam)
+    straight = _weighted_mass(mass, lambda a: a, mass.a_min, end, c, *gauss)
+    attenuation = jnp.sum(jnp.tensordot(wavelength_weight, outside * straight, 1) * scale, axis=-2) - stepped
+
+    # Refracted rays: u = sqrt(a^2 - k_AB) in B, above w / (z_hi - z) and above the second face's
+    # critical angle sqrt(k_AC - k_AB); they land at w + a_C (Delta - z - w / u).
+    k_ab_l, k_ac_l = k_ab[:, None], k_ac[:, None]
+    aim_l = jnp.broadcast_to(aim, (k_ab.shape[0],) + aim.shape)
+    # kinks: where the edge's ray is the one from u = w / (z_hi - z), and where that floor
+    # meets the second face's critical angle
+    kappa_l = k_ab_l - k_ac_l
+    u_edge = jnp.sqrt(jnp.maximum(jnp.square((aim_l - w) / (distance_um - z_hi)) - kappa_l, 0.0))
+    floor_cut = jnp.where((aim_l > w) & (u_edge > 0), z_hi - w / jnp.maximum(u_edge, _TINY), z_hi)
+    critical_cut = z_hi - w / jnp.maximum(jnp.sqrt(jnp.maximum(-kappa_l, 0.0)), _TINY)
+    def end_cut(a):  # where the edge's ray is the one that came in at angle a (the fan's ends)
+        u_end = jnp.sqrt(jnp.maximum(a * a - k_ab_l, 0.0))
+        out = jnp.sqrt(jnp.maximum(a * a - k_ac_l, 0.0))
+        return distance_um - (aim_l - w) / jnp.maximum(out, _TINY) - w / jnp.maximum(u_end, _TINY)
+
+    floor_ends = tuple(z_hi - w / jnp.maximum(jnp.sqrt(jnp.maximum(a * a - k_ab_l, 0.0)), _TINY)
+                       for a in (view.a_min, view.a_max))  # u = w / (z_hi - z) at the fan's ends
+    z, scale, grazing = nodes(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0), aim_l,
+                              (floor_cut, critical_cut, end_cut(view.a_min), end_cut(view.a_max)) + floor_ends)
+    mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
+    k_ab_n, kappa = k_ab.reshape(per_lam), (k_ab - k_ac).reshape(per_lam)
+    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, _TINY), jnp.sqrt(jnp.maximum(-kappa, 0.0)))
+    a_lo = jnp.clip(jnp.sqrt(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
+    u_lo = jnp.sqrt(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
+    u_hi = jnp.maximum(jnp.sqrt(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
+    u = _landing_u(aim_l[..., None, :], distance_um - z, w, kappa, u_lo, u_hi)
+    incoming = lambda v: jnp.clip(jnp.sqrt(v * v + k_ab_n), a_lo, mass.a_max)
+    refracted = _weighted_mass(mass, incoming, u_lo, u, c, *gauss)
+    outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))
+    deflected = wavelength_weight @ jnp.sum(outside * refracted * scale, axis=-2)
+    return deflected - stepped, attenuation
+
+
+def _landing_u(aim, lever, w, kappa, u_lo, u_hi):
+    """The angle u in B (clipped to [u_lo, u_hi]) whose ray lands at ``aim`` after both faces.
+
+    Solves a_C(u) (lever - w / u) + w = aim, a_C = sqrt(u^2 + kappa), increasing in u
+    wherever u > w / lever, by Newton steps from the solution for w = 0.
+    """
+    def a_c(u):
+        return jnp.sqrt(jnp.maximum(u * u + kappa, _TINY**2))
+
+    first = (aim - w) / lever
+    u = jnp.clip(jnp.sqrt(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
+    for _ in range(NEWTON_STEPS):
+        out, safe = a_c(u), jnp.maximum(u, _TINY)
+        arm = lever - w / safe
+        value = out * arm + w - aim
+        slope = u / out * arm + out * w / (safe * safe)
+        u = jnp.clip(u - value / jnp.maximum(slope, _TINY), u_lo, u_hi)
+    return u
