@@ -62,6 +62,10 @@ class AngularMass:
         v = (a - self.offset) * self.inverse_half_width
         return self.offset * self._cdf(v) + self.half_width * self._moment(v)
 
+    def cdf(self, a):
+        """Fraction of the aperture's rays below grazing angle a."""
+        return self._cdf((a - self.offset) * self.inverse_half_width)
+
     def between(self, a_low, a_high):
         return self.primitive(a_high) - self.primitive(a_low)
 
@@ -80,19 +84,22 @@ def _critical(mass: AngularMass, k):
     return jnp.clip(_safe_sqrt(k) * (k > 0), mass.a_min, mass.a_max)
 
 
-def deflected_cumulative(mass: AngularMass, grazing_at_edge, k, reflect_k=None):
+def deflected_cumulative(mass: AngularMass, grazing_at_edge, k, reflect_k=None, floor=None):
     """Refracted plus totally reflected crossing rays landing left of each edge.
 
     k = 2 (delta_2 - delta_1) (dimensionless, broadcastable); refracted rays leave
     at a2 = sqrt(a^2 - k) > 0, reflected ones at -a. reflect_k: rays with a^2 below
     it are reflected (default k; larger where a face behind a thin layer reflects them).
+    floor: only rays above this angle (those below are a thin layer's guided rays).
     Returns (refracted, reflected) cumulative masses.
     """
-    critical = _critical(mass, k if reflect_k is None else reflect_k)
+    a_min = mass.a_min if floor is None else jnp.clip(floor, mass.a_min, mass.a_max)
+    reflect_k = k if reflect_k is None else reflect_k
+    critical = jnp.clip(_safe_sqrt(reflect_k) * (reflect_k > 0), a_min, mass.a_max)
     positive = jnp.maximum(grazing_at_edge, 0.0)
     incoming = _safe_sqrt(positive * positive + k)
     refracted = mass.between(critical, jnp.clip(incoming, critical, mass.a_max))
-    reflected_from = jnp.clip(-grazing_at_edge, mass.a_min, critical)
+    reflected_from = jnp.clip(-grazing_at_edge, a_min, critical)
     reflected = mass.between(reflected_from, critical)
     return refracted, reflected
 

@@ -91,6 +91,7 @@ class ProfileGroup(eqx.Module):
     # coupled thin layers: Gauss-Legendre on [0, 1] for the attenuation in the layer; () without
     thin_nodes: tuple[float, ...] = eqx.field(static=True)
     thin_weights: tuple[float, ...] = eqx.field(static=True)
+    guided_cells: int = eqx.field(static=True)  # angle cells of the rays guided in a thin layer
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -227,14 +228,14 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um,
                            ceiling=ceiling)
 
-    def nodes(kinks, aim, deflected=False):
+    def nodes(kinks, aim, deflected=False, more_cuts=()):
         """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
         if restrict is None:
             cuts = ()
         else:
             view = AngularMass(group.aperture, boundary, slope, L - distance_um, group.aperture_um)
             cuts = _thin.face_cuts(restrict, aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max),
-                                   k[:, None] if deflected else None)
+                                   k[:, None] if deflected else None) + more_cuts
         z, dz = _kink_aligned_depths(lambda z: mass_at(z, deflected), kinks, aim, distance_um, z_lo, z_hi, group,
                                      cuts)
         return z, dz * L / (L - distance_um + z), mass_at(z, deflected), aim[..., None, :] / (distance_um - z)
@@ -260,10 +261,11 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, k_l, aim_l > 0), aim_l)  # (l, N, e)
         refracted, reflected = deflected_cumulative(mass, grazing, k_l[..., None])
     else:  # reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
-        reflect_l = restrict[2][:, None]
-        z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, aim_l > 0), aim_l, True)
+        reflect_l, guided_l = restrict[2][:, None], restrict[3][:, None]
+        z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, aim_l > 0), aim_l, True,
+                                        (distance_um + aim_l / jnp.maximum(guided_l, 1e-12),))
         refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
-                                                    reflect_l[..., None])
+                                                    reflect_l[..., None], guided_l[..., None])
     reflected_path = jnp.exp(-mu_from_l * depth_um)
     deflected = wavelength_weight @ jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale,
                                             axis=-2)
@@ -340,9 +342,10 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         w = boundary[layer.layer] - boundary[layer.layer - 1]
         for sign, first, second, (a, b, c) in ((1.0, layer.layer - 1, layer.layer, (layer.left, layer.layer, layer.right)),
                                                (-1.0, layer.layer, layer.layer - 1, (layer.right, layer.layer, layer.left))):
-            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0]),
-                      (sign, second, b, c, w, False, k([b], [c])[0])]
-            through.append((sign, first, second, a, b, c, w))
+            trapped = jnp.sqrt(jnp.maximum(jnp.minimum(k([b], [a]), k([b], [c]))[0], 0.0))  # guided in B below
+            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped),
+                      (sign, second, b, c, w, False, k([b], [c])[0], trapped)]
+            through.append((sign, first, second, a, b, c, w, trapped))
     n_window = 2 * group.window + 1
 
     def place(sign, landing_um, cumulative):
@@ -358,7 +361,7 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     position, before, after = (np.asarray([f[i] for f in faces]) for i in (1, 2, 3))
     b = boundary[position]
     restrict = (jnp.stack([f[4] for f in faces]), jnp.asarray([f[5] for f in faces]),
-                jnp.stack([f[6] for f in faces]))
+                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]))
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after))
@@ -376,7 +379,16 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     kernel = jax.vmap(lambda side, edges: _thin.through_kernel(group, side, distance_um, wavelength_weight,
                                                                depth_um, edges, _kink_aligned_depths))
     dT, dT_att = place(sign, landing, lambda edges: kernel(sides, edges))
-    return T + dT, T_att + dT_att
+    T, T_att = T + dT, T_att + dT_att
+
+    sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, b_].T, jnp.stack([t[7] for t in through]),
+             jnp.stack([t[6] for t in through]))
+    landing = _landing_centre_um(group, *jax.lax.stop_gradient(
+        (0.5 * (boundary[first] + boundary[second]), slope, z_mid[first], 0.0 * sign)), sign, distance_um)
+    kernel = jax.vmap(lambda side, edges: _thin.guided_kernel(group, side, distance_um, wavelength_weight,
+                                                              depth_um, edges))
+    dT, _ = place(sign, landing, lambda edges: kernel(sides, edges))
+    return T + dT, T_att
 
 
 def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):

@@ -40,6 +40,7 @@ _MAX_BRAGG_BREAKS = 8
 _NARROW_BAND_REL = 0.3
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 _THIN_ANGLE_NODES = 3  # Gauss nodes of the attenuation inside a coupled thin layer (``_thin._weighted_mass``)
+_GUIDED_CELLS = 32  # angle cells of the rays guided inside a coupled thin layer (``_thin.guided_kernel``)
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
 _DEPTH_NODES_PER_LOG = 0.5
@@ -294,6 +295,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
             n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
             z_nodes=z_nodes, z_weights=z_weights, thin_nodes=thin_nodes, thin_weights=thin_weights,
+            guided_cells=_GUIDED_CELLS if thin else 0,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
             first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),

@@ -75,7 +75,7 @@ def face_limits(restrict, z_lo, z_hi):
     below w / (z - z_lo)); reflect_k (n_lam,) as in ``deflected_cumulative``. Returns
     z -> (straight ceiling, deflected-mass ceiling, outgoing ceiling), in rad.
     """
-    w, forward, _ = restrict
+    w, forward = restrict[:2]
 
     def limits(z):
         reach = jnp.maximum(jnp.where(forward, z_hi - z, z - z_lo), _TINY)
@@ -96,7 +96,7 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
     k (n_lam, 1) for refracted rays: the second face's limit is on the incoming angle
     sqrt(g^2 + k) of the outgoing g = aim / (distance - z), found by a few fixed-point steps.
     """
-    w, forward, _ = restrict
+    w, forward = restrict[:2]
     # the first face limits the outgoing angle of refracted rays, sqrt(a^2 - k) at a fan's end
     out = (lambda a: a) if k is None else (lambda a: jnp.sqrt(jnp.maximum(a * a - k, 0.0)))
     ends = tuple(jnp.where(forward, z_hi - w / jnp.maximum(out(a), _TINY), z_lo + w / jnp.maximum(a, _TINY))
@@ -159,7 +159,7 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
 
     # Straight rays (T_att and the step assignment): those reaching the second face, a >= w / (z_hi - z).
     view = AngularMass(group.aperture, boundary, slope, L - distance_um, group.aperture_um)  # from z = 0
-    reach = face_cuts((w, True, None), aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max))  # a = w / (z_hi - z)
+    reach = face_cuts((w, True), aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max))  # a = w / (z_hi - z)
     in_b = w * distance_um / _safe(w - aim)  # a = w / -z: the ray is in B at z = 0 from here on
     z, scale, grazing = nodes(straight_kinks, aim, reach + (in_b,))  # (N, e)
     mass = mass_at(z)
@@ -201,11 +201,45 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     u_lo = jnp.sqrt(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
     u_hi = jnp.maximum(jnp.sqrt(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
     u = _landing_u(aim_l[..., None, :], distance_um - z, w, kappa, u_lo, u_hi)
-    incoming = lambda v: jnp.clip(jnp.sqrt(v * v + k_ab_n), a_lo, mass.a_max)
+    incoming = lambda v: jnp.clip(jnp.sqrt(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
     refracted = _weighted_mass(mass, incoming, u_lo, u, c, *gauss)
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))
     deflected = wavelength_weight @ jnp.sum(outside * refracted * scale, axis=-2)
     return deflected - stepped, attenuation
+
+
+def guided_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_um):
+    """Cumulative kernels (T, 0) of the rays guided in B: they entered through its front,
+    move towards the second face and are totally reflected at both faces (a below
+    ``trapped``, n_lam). Unfolded, such a ray from x0 in [0, w] runs straight to
+    x0 + a depth; folded into [0, w] (period 2w), it leaves the back at that position,
+    at +a or -a. Replaces the straight landing of those that reach no face (the step
+    profile's); those that reach one are left out of ``_crossing_kernel`` (its floor).
+    side: the first face's boundary at z = 0, slope, z-centre, mu_B (n_lam,),
+    trapped (n_lam,) rad, w µm. Midpoint rule over angle on ``group.guided_cells`` cells.
+    """
+    boundary, slope, z_mid, mu_b, trapped, w = side
+    z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
+    L = group.aperture_distance_um
+    front = AngularMass(group.aperture, boundary + slope * z_lo, slope, L - distance_um + z_lo, group.aperture_um)
+    aim = edges_um - (boundary + slope * distance_um)  # (e,)
+    lo = front.a_min
+    hi = jnp.clip(trapped, lo, front.a_max)[:, None]  # (l, 1)
+    cell = lo + (hi - lo) * np.linspace(0.0, 1.0, group.guided_cells + 1)[:, None, None]  # (n + 1, l, 1)
+    density = jnp.diff(front.cdf(cell), axis=0)  # the rays of each cell, exactly
+    a = 0.5 * (cell[1:] + cell[:-1])  # (n, l, 1)
+    width = jnp.maximum(w, _TINY)
+    run = a * depth_um
+    turns = jnp.floor(run / width)
+    r = run - turns * width
+    even = jnp.mod(turns, 2.0) == 0
+    out = distance_um - z_hi
+    count = lambda x, n: jnp.clip(x, 0.0, n)  # uniform rays over a length n landing left of an edge at x
+    first = jnp.where(even, count(aim - a * out - r, width - r), count(aim + a * out, width - r))
+    second = jnp.where(even, count(aim + a * out - (width - r), r), count(aim - a * out, r))
+    straight = count(aim - a * (distance_um - z_lo), jnp.maximum(width - run, 0.0))
+    guided = jnp.sum(density * (first + second - straight), axis=0)  # (l, e)
+    return wavelength_weight @ (jnp.exp(-mu_b * depth_um)[:, None] * guided), jnp.zeros_like(aim)
 
 
 def _landing_u(aim, lever, w, kappa, u_lo, u_hi):
