@@ -20,6 +20,8 @@ fitting; float32 agrees to ~1e-4 in T.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -92,6 +94,8 @@ class ProfileGroup(eqx.Module):
     thin_nodes: tuple[float, ...] = eqx.field(static=True)
     thin_weights: tuple[float, ...] = eqx.field(static=True)
     guided_cells: int = eqx.field(static=True)  # angle cells of the rays guided in a thin layer
+    thin_z_nodes: tuple[float, ...] = eqx.field(static=True)  # depth nodes per piece of the thin kernels
+    thin_z_weights: tuple[float, ...] = eqx.field(static=True)
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -336,6 +340,7 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     """
     boundary, slope, z_mid = geometry
     T, T_att = values
+    group = dataclasses.replace(group, z_nodes=group.thin_z_nodes, z_weights=group.thin_z_weights)
     k = lambda before, after: 2.0 * (sld[np.asarray(after)] - sld[np.asarray(before)])[:, None] * delta_per_sld  # (n, l)
     faces, through = [], []
     for layer in thin:

@@ -40,6 +40,9 @@ _MAX_BRAGG_BREAKS = 8
 _NARROW_BAND_REL = 0.3
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 _THIN_ANGLE_NODES = 3  # Gauss nodes of the attenuation inside a coupled thin layer (``_thin._weighted_mass``)
+# The thin kernels' integrands have more kinks than the depth cuts catch exactly: twice the depth
+# nodes per piece (measured: RMS 0.0027 -> 0.0013 for a 2 µm skin at 10 mm, 0.24°).
+_THIN_DEPTH_FACTOR = 2
 _GUIDED_CELLS = 32  # angle cells of the rays guided inside a coupled thin layer (``_thin.guided_kernel``)
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
@@ -285,6 +288,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     for (instrument_name, n_edges, n_sub, n_pad, window, _), index in plans.items():
         instrument = scene.instruments[instrument_name]
         z_nodes, z_weights = _unit_gauss(max(depth_nodes[i] for i in index))
+        thin_z_nodes, thin_z_weights = _unit_gauss(_THIN_DEPTH_FACTOR * len(z_nodes) if thin else 0)
         angle_nodes, angle_weights = _unit_gauss(fresnel_nodes(accuracy, instrument.aperture)
                                                  if instrument.fresnel else 0)
         stack = lambda k: jnp.asarray(np.stack([per_profile[i][k] for i in index]))
@@ -295,7 +299,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
             n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
             z_nodes=z_nodes, z_weights=z_weights, thin_nodes=thin_nodes, thin_weights=thin_weights,
-            guided_cells=_GUIDED_CELLS if thin else 0,
+            guided_cells=_GUIDED_CELLS if thin else 0, thin_z_nodes=thin_z_nodes, thin_z_weights=thin_z_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
             first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
