@@ -66,7 +66,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer rays, thicknesses 0, 2, 20 µm")
     args = parser.parse_args()
-    rays = {1.1: 1_000_000, 10.0: 2_000_000} if args.quick else {1.1: 8_000_000, 10.0: 16_000_000}
+    rays = {1.1: 1_000_000, 10.0: 2_000_000} if args.quick else {1.1: 8_000_000, 10.0: 12_000_000}
     thicknesses = (0.0, 2.0, 20.0) if args.quick else THICKNESS_UM
     base = scene(2.0)
     model = fwdfit.build_model(base, free=base.fit.vary, tilt_range_deg=(0.0, 0.24))
