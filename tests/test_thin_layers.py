@@ -72,6 +72,7 @@ def test_thick_scenes_are_planned_as_before():
     assert len(thin.interfaces) == 1  # Al | vacuum on the right; the skin's faces are coupled
 
 
+@pytest.mark.slow  # 150 s at load ~12 on 2 cores (two compilations and a forward-mode derivative)
 def test_free_thickness_vanishes_smoothly():
     """With a free skin thickness, T at 0 µm equals the bare Al block (1e-9), T is continuous
     towards 0 and its derivative in the thickness finite there; at 2 µm the skin matters."""
@@ -97,6 +98,7 @@ def test_free_thickness_vanishes_smoothly():
     assert np.isfinite(float(slope)) and np.isfinite(central)
 
 
+@pytest.mark.slow  # 250-370 s each at load ~12 on 2 cores (reverse-mode compile of the thin kernels)
 @pytest.mark.parametrize("precision", ["float32", "float64"])
 def test_thin_layer_values_and_gradients_are_finite(precision):
     """A 1.2 µm skin at tilt 0.24°: T, T_att and the gradient of their sum in every parameter
