@@ -347,7 +347,7 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         w = boundary[layer.layer] - boundary[layer.layer - 1]
         for sign, first, second, (a, b, c) in ((1.0, layer.layer - 1, layer.layer, (layer.left, layer.layer, layer.right)),
                                                (-1.0, layer.layer, layer.layer - 1, (layer.right, layer.layer, layer.left))):
-            trapped = jnp.sqrt(jnp.maximum(jnp.minimum(k([b], [a]), k([b], [c]))[0], 0.0))  # guided in B below
+            trapped = _thin.root(jnp.minimum(k([b], [a]), k([b], [c]))[0])  # guided in B below
             faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped),
                       (sign, second, b, c, w, False, k([b], [c])[0], trapped)]
             through.append((sign, first, second, a, b, c, w, trapped))

@@ -85,7 +85,7 @@ def face_limits(restrict, z_lo, z_hi):
     return limits
 
 
-def _root(x):
+def root(x):
     """sqrt with finite derivatives where its argument is clipped at 0 (as ``_kernel._safe_sqrt``)."""
     return jnp.sqrt(jnp.maximum(x, _TINY**2))
 
@@ -103,7 +103,7 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
     """
     w, forward = restrict[:2]
     # the first face limits the outgoing angle of refracted rays, sqrt(a^2 - k) at a fan's end
-    out = (lambda a: a) if k is None else (lambda a: _root(jnp.maximum(a * a - k, 0.0)))
+    out = (lambda a: a) if k is None else (lambda a: root(jnp.maximum(a * a - k, 0.0)))
     ends = tuple(jnp.where(forward, z_hi - w / jnp.maximum(out(a), _TINY), z_lo + w / jnp.maximum(a, _TINY))
                  for a in fan)
     stays = (w * distance_um - aim * z_hi) / _safe(w - aim)  # aim / (distance - z) = w / (z_hi - z)
@@ -112,7 +112,7 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
         started = jnp.where(aim > 0, started, (w * distance_um - aim * z_lo) / _safe(w - aim))
         for _ in range(3):
             g = aim / (distance_um - jnp.clip(started, z_lo, z_hi))
-            incoming = jnp.where(aim > 0, _root(jnp.maximum(g * g + k, 0.0)), -g)
+            incoming = jnp.where(aim > 0, root(jnp.maximum(g * g + k, 0.0)), -g)
             started = z_lo + w / jnp.maximum(incoming, _TINY)
     return (jnp.where(forward, stays, started),) + ends
 
@@ -187,26 +187,26 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     # kinks: where the edge's ray is the one from u = w / (z_hi - z), and where that floor
     # meets the second face's critical angle
     kappa_l = k_ab_l - k_ac_l
-    u_edge = _root(jnp.maximum(jnp.square((aim_l - w) / (distance_um - z_hi)) - kappa_l, 0.0))
+    u_edge = root(jnp.maximum(jnp.square((aim_l - w) / (distance_um - z_hi)) - kappa_l, 0.0))
     floor_cut = jnp.where((aim_l > w) & (u_edge > 0), z_hi - w / jnp.maximum(u_edge, _TINY), z_hi)
-    critical_cut = z_hi - w / jnp.maximum(_root(jnp.maximum(-kappa_l, 0.0)), _TINY)
+    critical_cut = z_hi - w / jnp.maximum(root(jnp.maximum(-kappa_l, 0.0)), _TINY)
     def end_cut(a):  # where the edge's ray is the one that came in at angle a (the fan's ends)
-        u_end = _root(jnp.maximum(a * a - k_ab_l, 0.0))
-        out = _root(jnp.maximum(a * a - k_ac_l, 0.0))
+        u_end = root(jnp.maximum(a * a - k_ab_l, 0.0))
+        out = root(jnp.maximum(a * a - k_ac_l, 0.0))
         return distance_um - (aim_l - w) / jnp.maximum(out, _TINY) - w / jnp.maximum(u_end, _TINY)
 
-    floor_ends = tuple(z_hi - w / jnp.maximum(_root(jnp.maximum(a * a - k_ab_l, 0.0)), _TINY)
+    floor_ends = tuple(z_hi - w / jnp.maximum(root(jnp.maximum(a * a - k_ab_l, 0.0)), _TINY)
                        for a in (view.a_min, view.a_max))  # u = w / (z_hi - z) at the fan's ends
     z, scale, grazing = nodes(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0), aim_l,
                               (floor_cut, critical_cut, end_cut(view.a_min), end_cut(view.a_max)) + floor_ends)
     mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
     k_ab_n, kappa = k_ab.reshape(per_lam), (k_ab - k_ac).reshape(per_lam)
-    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, _TINY), _root(jnp.maximum(-kappa, 0.0)))
-    a_lo = jnp.clip(_root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
-    u_lo = _root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
-    u_hi = jnp.maximum(_root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
+    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, _TINY), root(jnp.maximum(-kappa, 0.0)))
+    a_lo = jnp.clip(root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
+    u_lo = root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
+    u_hi = jnp.maximum(root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
     u = _landing_u(aim_l[..., None, :], distance_um - z, w, kappa, u_lo, u_hi)
-    incoming = lambda v: jnp.clip(_root(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
+    incoming = lambda v: jnp.clip(root(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
     refracted = _weighted_mass(mass, incoming, u_lo, u, c, *gauss)
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))
     deflected = wavelength_weight @ jnp.sum(outside * refracted * scale, axis=-2)
@@ -254,10 +254,10 @@ def _landing_u(aim, lever, w, kappa, u_lo, u_hi):
     wherever u > w / lever, by Newton steps from the solution for w = 0.
     """
     def a_c(u):
-        return _root(jnp.maximum(u * u + kappa, _TINY**2))
+        return root(jnp.maximum(u * u + kappa, _TINY**2))
 
     first = (aim - w) / lever
-    u = jnp.clip(_root(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
+    u = jnp.clip(root(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
     for _ in range(NEWTON_STEPS):
         out, safe = a_c(u), jnp.maximum(u, _TINY)
         arm = lever - w / safe
