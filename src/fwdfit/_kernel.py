@@ -49,19 +49,24 @@ class AngularMass:
     (``behind``).
     """
 
-    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float, tilt=None):
+    def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float, tilt=None,
+                 floor=None, ceiling=None):
         self._cdf, self._moment, _ = APERTURES[aperture]
         to_source = 1.0 / source_um
         self.half_width = 0.5 * aperture_um * to_source  # rad, the angle it subtends / 2
         self.inverse_half_width = (2.0 / aperture_um) * source_um
         self.offset = position_um * to_source - slope  # grazing angle of the aperture centre
         self.tilt = tilt
-        floor = 0.0
+        crossing = 0.0
         if tilt is not None:
             self.offset = self.offset - tilt
-            floor = jnp.maximum(-tilt, 0.0)
+            crossing = jnp.maximum(-tilt, 0.0)
         lo, hi = self.offset - self.half_width, self.offset + self.half_width
-        self.a_min, self.a_max = jnp.maximum(lo, floor), jnp.maximum(hi, floor)
+        self.a_min, self.a_max = jnp.maximum(lo, crossing), jnp.maximum(hi, crossing)
+        if floor is not None:  # only the rays above ``floor`` (rad), e.g. those that reach a second face
+            self.a_min = jnp.clip(floor, self.a_min, self.a_max)
+        if ceiling is not None:  # only the rays below ``ceiling`` (rad)
+            self.a_max = jnp.clip(ceiling, self.a_min, self.a_max)
 
     def primitive(self, a):
         """int_{a_lo}^{a} q(slope + t) (t + tilt) dt for a already clipped to the crossing range."""
@@ -76,6 +81,10 @@ class AngularMass:
         high = jnp.maximum(jnp.minimum(self.offset + self.tilt + self.half_width, self.tilt), low)
         a = jnp.clip(grazing_at_edge, low, high)
         return self.primitive(a - self.tilt) - self.primitive(low - self.tilt)
+
+    def cdf(self, a):
+        """Fraction of the aperture's rays below grazing angle a."""
+        return self._cdf((a - self.offset) * self.inverse_half_width)
 
     def between(self, a_low, a_high):
         return self.primitive(a_high) - self.primitive(a_low)
@@ -95,18 +104,22 @@ def _critical(mass: AngularMass, k):
     return jnp.clip(_safe_sqrt(k) * (k > 0), mass.a_min, mass.a_max)
 
 
-def deflected_cumulative(mass: AngularMass, grazing_at_edge, k):
+def deflected_cumulative(mass: AngularMass, grazing_at_edge, k, reflect_k=None, floor=None):
     """Refracted plus totally reflected crossing rays landing left of each edge.
 
     k = 2 (delta_2 - delta_1) (dimensionless, broadcastable); refracted rays leave
-    at a2 = sqrt(a^2 - k) > 0, reflected ones at -a.
+    at a2 = sqrt(a^2 - k) > 0, reflected ones at -a. reflect_k: rays with a^2 below
+    it are reflected (default k; larger where a face behind a thin layer reflects them).
+    floor: only rays above this angle (those below are a thin layer's guided rays).
     Returns (refracted, reflected) cumulative masses.
     """
-    critical = _critical(mass, k)
+    a_min = mass.a_min if floor is None else jnp.clip(floor, mass.a_min, mass.a_max)
+    reflect_k = k if reflect_k is None else reflect_k
+    critical = jnp.clip(_safe_sqrt(reflect_k) * (reflect_k > 0), a_min, mass.a_max)
     positive = jnp.maximum(grazing_at_edge, 0.0)
     incoming = _safe_sqrt(positive * positive + k)
     refracted = mass.between(critical, jnp.clip(incoming, critical, mass.a_max))
-    reflected_from = jnp.clip(-grazing_at_edge, mass.a_min, critical)
+    reflected_from = jnp.clip(-grazing_at_edge, a_min, critical)
     reflected = mass.between(reflected_from, critical)
     return refracted, reflected
 

@@ -20,6 +20,7 @@ fitting; float32 agrees to ~1e-4 in T.
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 
 import equinox as eqx
@@ -28,12 +29,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from . import _thin
 from ._aperture import APERTURES
 from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, fresnel_kinks, fresnel_transfer,
                       landing_range, straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
 DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane
+# µm: a layer much thinner than this is transparent (the neutron's evanescent depth,
+# ~ lambda / (4 pi theta_c), is ~0.01 µm); see ``_vanishing``
+TUNNEL_UM = 0.02
 
 
 class ModelParams(eqx.Module):
@@ -98,6 +103,12 @@ class ProfileGroup(eqx.Module):
     fresnel_nodes: tuple[float, ...] = eqx.field(static=True)
     fresnel_weights: tuple[float, ...] = eqx.field(static=True)
     rough_strata: int = eqx.field(static=True)  # rough faces: equiprobable strata of the normal tilt; 0 when none
+    # coupled thin layers: Gauss-Legendre on [0, 1] for the attenuation in the layer; () without
+    thin_nodes: tuple[float, ...] = eqx.field(static=True)
+    thin_weights: tuple[float, ...] = eqx.field(static=True)
+    guided_cells: int = eqx.field(static=True)  # angle cells of the rays guided in a thin layer
+    thin_z_nodes: tuple[float, ...] = eqx.field(static=True)  # depth nodes per piece of the thin kernels
+    thin_z_weights: tuple[float, ...] = eqx.field(static=True)
     z_nodes: tuple[float, ...] = eqx.field(static=True)  # Gauss-Legendre on [0, 1], per depth piece
     z_weights: tuple[float, ...] = eqx.field(static=True)
     first_edge_um: Float[Array, " group"]
@@ -117,6 +128,9 @@ class ForwardModel(eqx.Module):
     n_profiles: int = eqx.field(static=True)
     graded: tuple[bool, ...] = eqx.field(static=True)  # per layer: SLD and mu linear across it
     step_pieces: int = eqx.field(static=True)  # uniform pieces of a graded layer in the step profile
+    thin: tuple[_thin.ThinLayer, ...] = ()  # coupled thin layers; their faces are not in ``interfaces``
+    # (layer, left neighbour) media indices of the layers whose thickness is free (``_vanishing``)
+    vanishing: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
 
     def stacked(self, params: ModelParams) -> tuple[tuple[Array, Array], ...]:
         """Pixel-averaged (T, T_att) per group, each (n_group_profiles, n_pixel), rows in
@@ -171,10 +185,11 @@ class ForwardModel(eqx.Module):
         return T, T_att
 
 
-def _media(params: ModelParams, wavelength_A, mu_table_per_m, graded=()):
+def _media(params: ModelParams, wavelength_A, mu_table_per_m, graded=(), vanishing=()):
     """SLD (n_layer+2,) in 1e-6 Å^-2 and mu (n_lam, n_layer+2) in 1/µm, vacuum at both ends:
     (sld, mu) at each layer's left-hand side, then at its right-hand side (the same arrays
-    unless a layer is ``graded``)."""
+    unless a layer is ``graded``). vanishing: (layer, left neighbour) media indices of the
+    layers whose thickness is free (``_vanishing``)."""
     zero = jnp.zeros((1,), params.sld_e6_per_A2.dtype)
     pad = lambda values: jnp.concatenate([zero, params.density_scale * values, zero])
     sld = pad(params.sld_e6_per_A2)
@@ -182,10 +197,29 @@ def _media(params: ModelParams, wavelength_A, mu_table_per_m, graded=()):
                                  + mu_table_per_m)
     mu = jnp.pad(mu * 1e-6, ((0, 0), (1, 1)))
     if not any(graded):
-        return sld, mu, sld, mu
+        return _vanishing(params.thickness_um, vanishing, sld, mu, sld, mu)
     mask = np.asarray(graded)
     sld_end = pad(jnp.where(mask, params.sld_end_e6_per_A2, params.sld_e6_per_A2))
     mu_end = mu + 1e-6 * pad(jnp.where(mask, params.mu_end_per_m - params.mu_per_m, 0.0))
+    return _vanishing(params.thickness_um, vanishing, sld, mu, sld_end, mu_end)
+
+
+def _vanishing(thickness_um, vanishing, sld, mu, sld_end, mu_end):
+    """Media (sld, mu, sld_end, mu_end as ``_media``) with each layer of ``vanishing`` made
+    transparent below the neutron's evanescent depth: its values fade to its left
+    neighbour's right-hand ones with weight 1 - exp(-(t / TUNNEL_UM)^2) (smooth, 0 with zero
+    slope at t = 0, 1 within 1e-6 from t = 0.075 µm). At t = 0 its left face has no contrast
+    (its kernels add exactly nothing) and its right face is the neighbours' interface, so a
+    free thickness going to 0 leaves the model without the layer, whatever its material."""
+    for layer, left in vanishing:
+        seen = 1.0 - jnp.exp(-jnp.square(thickness_um[layer - 1] / TUNNEL_UM))
+        towards = sld_end[left], mu_end[:, left]
+
+        def fade(values, to):
+            return values.at[..., layer].set(to + seen * (values[..., layer] - to))
+
+        sld, sld_end = fade(sld, towards[0]), fade(sld_end, towards[0])
+        mu, mu_end = fade(mu, towards[1]), fade(mu_end, towards[1])
     return sld, mu, sld_end, mu_end
 
 
@@ -198,7 +232,7 @@ def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um
     pieces of different shifts is then two: +t_right at the right piece's shift, -t_left at
     the left's."""
     step_lam, step_weight, step_table = step_spectrum
-    sld, mu, sld_end, mu_end = _media(params, step_lam, step_table, model.graded)
+    sld, mu, sld_end, mu_end = _media(params, step_lam, step_table, model.graded, model.vanishing)
     if not any(model.graded):
         return boundary_um, jnp.diff(step_weight @ jnp.exp(-mu * depth_um)), None
     medium, fraction, left, at = [0], [0.0], [0], [0.0]  # pieces; jumps: left boundary + fraction
@@ -247,7 +281,7 @@ def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um,
     return 1.0 + jump @ beyond
 
 
-def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup):
+def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup, extra_cuts=()):
     """Depth nodes and weights (..., DEPTH_PIECES n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
 
     The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
@@ -255,7 +289,8 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     ``kinks(mass)`` angles, which depend on z only through the aperture's view.
     Splitting there, and at the mid-plane z = 0 where the step assignment jumps,
     keeps every piece smooth, so the kernel is smooth in the parameters rather than
-    piecewise linear. aim_um: (..., e) µm, one value per edge.
+    piecewise linear. aim_um: (..., e) µm, one value per edge. extra_cuts: more depths
+    (each broadcastable to aim_um) to split at, one more piece each (a thin layer's kinks).
     """
     def depth_at(angle):  # where the ray to the edge grazes at ``angle``; z_hi if never
         reaches = jnp.abs(angle) > _TINY_ANGLE
@@ -272,6 +307,9 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, zero),
                       jnp.clip(zero, first, second), jnp.maximum(second, zero),
                       jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, 0 <= z_hi
+    if extra_cuts:
+        more = jnp.stack([jnp.clip(jnp.broadcast_to(c, first.shape), z_lo, z_hi) for c in extra_cuts], axis=-2)
+        cuts = jnp.sort(jnp.concatenate([cuts, more], axis=-2), axis=-2)
     # Gauss-Legendre in the log of the lever (distance - z) on every piece: the grazing
     # angle to an edge goes like 1 / lever, which is far from polynomial in z at short
     # distances (the lever runs from distance - depth / 2 to distance + depth / 2).
@@ -285,7 +323,7 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
 
 
 def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, depth_um,
-                     refracting: bool, rough: bool, edges_um):
+                     refracting: bool, rough: bool, edges_um, restrict=None):
     """Cumulative kernels (T, T_att), each (n_window_edges,), of one crossing direction.
 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
@@ -297,21 +335,33 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     contrast adds exactly nothing. A rough face's deflected rays are averaged over its
     normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
     leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
-    straight (``AngularMass``).
+    straight (``AngularMass``). restrict: a face of a coupled thin layer keeps only some
+    of its rays (``_thin.face_limits``; sharp faces only).
     """
     boundary, slope, z_mid, mu_from, mu_to, k, slope_rms = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
     L = group.aperture_distance_um
+    limits = None if restrict is None else _thin.face_limits(restrict, z_lo, z_hi)
 
-    def mass_at(z, tilt=None):
+    def mass_at(z, tilt=None, deflected=False):
         source_to_z = L - distance_um + z
-        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um, tilt)
+        ceiling = None if limits is None else limits(z)[int(deflected)]
+        return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um, tilt,
+                           ceiling=ceiling)
 
-    def nodes(kinks, aim, tilt=None):
+    def nodes(kinks, aim, tilt=None, deflected=False, more_cuts=()):
         """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
-        z, dz = _kink_aligned_depths(lambda z: mass_at(z, tilt), kinks, aim, distance_um, z_lo, z_hi, group)
+        if restrict is None:
+            cuts = ()
+        else:
+            view = AngularMass(group.aperture, boundary, slope, L - distance_um, group.aperture_um)
+            cuts = _thin.face_cuts(restrict, aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max),
+                                   k[:, None] if deflected else None) + more_cuts
+        z, dz = _kink_aligned_depths(lambda z: mass_at(z, tilt, deflected), kinks, aim, distance_um, z_lo, z_hi,
+                                     group, cuts)
         node_tilt = None if tilt is None else tilt[..., None]
-        return z, dz * L / (L - distance_um + z), mass_at(z, node_tilt), aim[..., None, :] / (distance_um - z)
+        return (z, dz * L / (L - distance_um + z), mass_at(z, node_tilt, deflected),
+                aim[..., None, :] / (distance_um - z))
 
     per_lam = (-1, 1, 1)  # per-wavelength values against (N, e) or (l, N, e) nodes
     mu_from_l, mu_to_l = mu_from.reshape(per_lam), mu_to.reshape(per_lam)
@@ -347,9 +397,17 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
                                                                             wavelength_weight, values)
         return values
 
-    z, scale, mass, grazing = nodes(shifted(lambda m: deflected_kinks(m, k_l, right_of_interface)), aim_l, tilt)
-    local = grazing if tilt is None else grazing - tilt[..., None]
-    refracted, reflected = deflected_cumulative(mass, local, k_l[..., None])
+    if limits is None:
+        z, scale, mass, grazing = nodes(shifted(lambda m: deflected_kinks(m, k_l, right_of_interface)), aim_l, tilt)
+        local = grazing if tilt is None else grazing - tilt[..., None]
+        refracted, reflected = deflected_cumulative(mass, local, k_l[..., None])
+    else:  # reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
+        reflect_l, guided_l = restrict[2][:, None], restrict[3][:, None]
+        z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, right_of_interface), aim_l,
+                                        deflected=True,
+                                        more_cuts=(distance_um + aim_l / jnp.maximum(guided_l, 1e-12),))
+        refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
+                                                    reflect_l[..., None], guided_l[..., None])
     if tilt is not None:  # rays that meet their facet from behind pass straight
         refracted = refracted + mass.behind(grazing)
     deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
@@ -386,7 +444,7 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
     """
     wavelength_A, wavelength_weight, mu_table_per_m = spectrum
     distance_um, depth_um = distance_mm * 1e3, params.depth_mm * 1e3
-    sld, mu, sld_end, mu_end = _media(params, wavelength_A, mu_table_per_m, model.graded)
+    sld, mu, sld_end, mu_end = _media(params, wavelength_A, mu_table_per_m, model.graded, model.vanishing)
     boundary, slope, z_mid = _boundaries(params, shift_um)
     edges = first_edge_um + group.bin_um * jnp.arange(group.n_edges)
     positions, jumps, shifts = _step_jumps(model, params, boundary, step_spectrum, depth_um, distance_um)
@@ -394,7 +452,9 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
     T_att = T if shifts is None else _step_profile(group, positions, jumps, distance_um, edges)
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
     slope_rms = 1e-3 * jnp.concatenate([params.left_roughness_mrad[None], params.roughness_mrad])
-    n_window = 2 * group.window + 1
+    if model.thin:
+        T, T_att = _thin_terms(group, model.thin, (T, T_att), sld, mu, (boundary, slope, z_mid), distance_um, wavelength_weight, depth_um,
+                               delta_per_sld, first_edge_um)
     for refracting, rough in ((True, False), (True, True), (False, False)):
         faces = [f for f in model.interfaces if f.refracting == refracting and f.rough == rough]
         if not faces:
@@ -412,18 +472,89 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
         landing_um = _landing_centre_um(group, *jax.lax.stop_gradient(
             (b, slope, z_mid[position], 2.0 * (sld_after - sld_before) * jnp.max(delta_per_sld))),
             sign, distance_um)
-        centre = jnp.round((landing_um - first_edge_um) / group.bin_um).astype(jnp.int32)
-        start = jnp.clip(centre - group.window, 0, group.n_edges - n_window)
-        window_edges = first_edge_um + group.bin_um * (start[:, None] + jnp.arange(n_window))
         sides = (sign * b, sign * slope, z_mid[position], mu_before.T, mu_after.T,
                  2.0 * (sld_after - sld_before)[:, None] * delta_per_sld, slope_rms[position])
         kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, None, 0))
-        C_T, C_att = kernel(group, sides, distance_um, wavelength_weight, depth_um, refracting, rough,
-                            sign[:, None] * window_edges)
-        scale = sign[:, None] / group.bin_um
-        T = T + _place(scale * jnp.diff(C_T, axis=1), start, T.shape[0])
-        T_att = T_att + _place(scale * jnp.diff(C_att, axis=1), start, T.shape[0])
+        dT, dT_att = _windowed(group, first_edge_um, T.shape[0], sign, landing_um, lambda window_edges: kernel(
+            group, sides, distance_um, wavelength_weight, depth_um, refracting, rough, window_edges))
+        T, T_att = T + dT, T_att + dT_att
     return T, T_att
+
+
+def _windowed(group: ProfileGroup, first_edge_um, n_bins: int, sign, landing_um, cumulative):
+    """Bin contributions (n_bins,) to (T, T_att) of kernels evaluated on windows around their landing.
+
+    sign, landing_um: per side (n_side,); cumulative: local-frame window edges (n_side, 2 window + 1)
+    µm -> cumulative kernels (C_T, C_att) on them, each (n_side, 2 window + 1).
+    """
+    n_window = 2 * group.window + 1
+    centre = jnp.round((landing_um - first_edge_um) / group.bin_um).astype(jnp.int32)
+    start = jnp.clip(centre - group.window, 0, group.n_edges - n_window)
+    window_edges = first_edge_um + group.bin_um * (start[:, None] + jnp.arange(n_window))
+    C_T, C_att = cumulative(sign[:, None] * window_edges)
+    scale = sign[:, None] / group.bin_um
+    return (_place(scale * jnp.diff(C_T, axis=1), start, n_bins),
+            _place(scale * jnp.diff(C_att, axis=1), start, n_bins))
+
+
+def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_um, wavelength_weight,
+                depth_um, delta_per_sld, first_edge_um):
+    """(T, T_att) plus the kernels of the coupled thin layers (``_thin``).
+
+    Per layer B between A and C and per direction (A -> C, and mirrored C -> A): the
+    first face restricted to rays that stay in B, the second restricted to rays that
+    started in B (both ``_crossing_kernel``), and the rays through both faces.
+    """
+    boundary, slope, z_mid = geometry
+    T, T_att = values
+    group = dataclasses.replace(group, z_nodes=group.thin_z_nodes, z_weights=group.thin_z_weights)
+    k = lambda before, after: 2.0 * (sld[np.asarray(after)] - sld[np.asarray(before)])[:, None] * delta_per_sld  # (n, l)
+    faces, through = [], []
+    for layer in thin:
+        w = boundary[layer.layer] - boundary[layer.layer - 1]
+        for sign, first, second, (a, b, c) in ((1.0, layer.layer - 1, layer.layer, (layer.left, layer.layer, layer.right)),
+                                               (-1.0, layer.layer, layer.layer - 1, (layer.right, layer.layer, layer.left))):
+            trapped = _thin.root(jnp.minimum(k([b], [a]), k([b], [c]))[0])  # guided in B below
+            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped),
+                      (sign, second, b, c, w, False, k([b], [c])[0], trapped)]
+            through.append((sign, first, second, a, b, c, w, trapped))
+
+    def place(sign, landing_um, cumulative):
+        return _windowed(group, first_edge_um, T.shape[0], sign, landing_um, cumulative)
+
+    sign = jnp.asarray([f[0] for f in faces], boundary.dtype)
+    position, before, after = (np.asarray([f[i] for f in faces]) for i in (1, 2, 3))
+    b = boundary[position]
+    restrict = (jnp.stack([f[4] for f in faces]), jnp.asarray([f[5] for f in faces]),
+                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]))
+    landing = _landing_centre_um(group, *jax.lax.stop_gradient(
+        (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
+    sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after),
+             jnp.zeros_like(b))  # sharp faces
+    kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, None, 0, 0))
+    dT, dT_att = place(sign, landing, lambda edges: kernel(group, sides, distance_um, wavelength_weight,
+                                                           depth_um, True, False, edges, restrict))
+    T, T_att = T + dT, T_att + dT_att
+
+    sign = jnp.asarray([t[0] for t in through], boundary.dtype)
+    first, second, a, b_, c = (np.asarray([t[i] for t in through]) for i in (1, 2, 3, 4, 5))
+    landing = _landing_centre_um(group, *jax.lax.stop_gradient(  # they leave from the second face
+        (boundary[second], slope, z_mid[first], 2.0 * (sld[c] - sld[a]) * jnp.max(delta_per_sld))), sign, distance_um)
+    sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, a].T, mu[:, b_].T, mu[:, c].T,
+             k(a, b_), k(a, c), jnp.stack([t[6] for t in through]))
+    kernel = jax.vmap(lambda side, edges: _thin.through_kernel(group, side, distance_um, wavelength_weight,
+                                                               depth_um, edges, _kink_aligned_depths))
+    dT, dT_att = place(sign, landing, lambda edges: kernel(sides, edges))
+    T, T_att = T + dT, T_att + dT_att
+
+    sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, b_].T, jnp.stack([t[7] for t in through]),
+             jnp.stack([t[6] for t in through]))
+    landing = _landing_centre_um(group, *jax.lax.stop_gradient(
+        (0.5 * (boundary[first] + boundary[second]), slope, z_mid[first], 0.0 * sign)), sign, distance_um)
+    kernel = jax.vmap(lambda side, edges: _thin.guided_kernel(group, side, distance_um, wavelength_weight,
+                                                              depth_um, edges))
+    dT, _ = place(sign, landing, lambda edges: kernel(sides, edges))
+    return T + dT, T_att
 
 
 def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):
