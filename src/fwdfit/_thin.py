@@ -34,7 +34,9 @@ import numpy as np
 from ._kernel import AngularMass, deflected_kinks, straight_kinks
 
 NEWTON_STEPS = 6  # for the incoming angle that lands at an edge after both faces
-_TINY = 1e-12  # µm or rad: keeps w / reach and w / u finite (and 0 for w = 0)
+# µm or rad: keeps w / reach and w / u finite (and 0 for w = 0); its fourth power stays a normal
+# float32 number, so that reverse-mode derivatives through 1 / u^2 stay finite in float32
+_TINY = 1e-9
 _NEVER = 1.0  # rad: an angle limit no paraxial ray reaches
 
 
