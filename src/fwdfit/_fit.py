@@ -138,7 +138,8 @@ def _data(scene: Scene):
 def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
     """The scene the model's static plan is built from, missing start values filled: an
     unknown SLD at the largest value the global scan tries (kernel windows are sized for
-    it; the plan's margin for free parameters covers the scan's factors on a known one)."""
+    it; the plan's margin for free parameters covers the scan's factors on a known one),
+    an unknown thickness at 0 (not a coupled thin layer)."""
     layers = list(scene.sample.layers)
     for p in free:
         field, index = p.target
@@ -146,6 +147,8 @@ def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
             value = getattr(layers[i], field)
             if field == "sld_e6_per_A2":
                 value = SLD_VALUE_MAX if math.isnan(value) else value
+            elif field == "thickness_um" and math.isnan(value):
+                value = 0.0  # unknown: planned with independent faces (``_plan.thin_layers``)
             elif math.isnan(value):
                 value = 1.0
             layers[i] = dataclasses.replace(layers[i], **{field: value})
