@@ -373,3 +373,13 @@ def free_layer_parameters(scene) -> list[str]:
     """Every layer parameter as a ``vary`` name, so that no interface is pruned."""
     return [f"layers.{layer.name}.{key}" for layer in scene.sample.layers
             for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")]
+
+
+def skin_scene(thickness_um, free=()):
+    """An oxide skin (SLD 4.5, mu 100 /m) on 1 mm of Al, ICON 4 Å line, the outer edge at 1.1 mm."""
+    import fwdfit
+
+    layers = [oxide_layer("skin", thickness_um, 4.5, 100.0), al_layer()]
+    return make_scene(layers, profiles=[("d01.1mm", 1.1, -530.0, -470.0)],
+                      spectrum=fwdfit.GaussianLine(4.0, 0.15), aperture="circular",
+                      aperture_distance_m=5.5, vary=free)

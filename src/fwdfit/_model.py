@@ -212,11 +212,12 @@ def _vanishing(thickness_um, vanishing, sld, mu, sld_end, mu_end):
     (its kernels add exactly nothing) and its right face is the neighbours' interface, so a
     free thickness going to 0 leaves the model without the layer, whatever its material."""
     for layer, left in vanishing:
-        seen = 1.0 - jnp.exp(-jnp.square(thickness_um[layer - 1] / TUNNEL_UM))
-        towards = sld_end[left], mu_end[:, left]
+        hidden = jnp.exp(-jnp.square(thickness_um[layer - 1] / TUNNEL_UM))  # 1 - the weight
+        only = np.arange(sld.shape[-1]) == layer  # elementwise, not a scatter: cheaper to compile
+        towards = sld_end[left], mu_end[:, left, None]
 
         def fade(values, to):
-            return values.at[..., layer].set(to + seen * (values[..., layer] - to))
+            return values + only * hidden * (to - values[..., layer, None])
 
         sld, sld_end = fade(sld, towards[0]), fade(sld_end, towards[0])
         mu, mu_end = fade(mu, towards[1]), fade(mu_end, towards[1])
