@@ -454,8 +454,8 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
     slope_rms = 1e-3 * jnp.concatenate([params.left_roughness_mrad[None], params.roughness_mrad])
     if model.thin:
-        T, T_att = _thin_terms(group, model.thin, (T, T_att), sld, mu, (boundary, slope, z_mid), distance_um, wavelength_weight, depth_um,
-                               delta_per_sld, first_edge_um)
+        T, T_att = _thin_terms(group, model.thin, (T, T_att), sld, mu, (boundary, slope, z_mid), distance_um,
+                               wavelength_weight, depth_um, delta_per_sld, first_edge_um)
     for refracting, rough in ((True, False), (True, True), (False, False)):
         faces = [f for f in model.interfaces if f.refracting == refracting and f.rough == rough]
         if not faces:

@@ -237,8 +237,9 @@ def thin_layers(scene: Scene, free: Collection[str], tilt_range_deg: tuple[float
 
     The drift is depth x the steepest grazing angle (half-divergence, tilt range and the
     largest critical angle); the thickness is the scene's (a fit's start), so a free layer
-    that starts thick, or at 0 (read off the data), keeps independent faces. A coupled layer needs thick neighbours: of
-    two adjacent candidates only one is coupled (interior layers first, then the thinnest).
+    that starts thick, or at 0 (read off the data), keeps independent faces. A coupled layer
+    needs thick neighbours: of two adjacent candidates only one is coupled (interior layers
+    first, then the thinnest).
     Not coupled (independent faces, as for thick layers): with Fresnel reflection, rough
     faces or graded media at the layer (not combined yet).
     """
