@@ -406,7 +406,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         reflect_l, guided_l = restrict[2][:, None], restrict[3][:, None]
         z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, right_of_interface), aim_l,
                                         deflected=True,
-                                        more_cuts=(distance_um + aim_l / jnp.maximum(guided_l, 1e-12),))
+                                        more_cuts=(distance_um + aim_l / jnp.maximum(guided_l, _thin.TINY),))
         refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
                                                     reflect_l[..., None], guided_l[..., None])
     if tilt is not None:  # rays that meet their facet from behind pass straight

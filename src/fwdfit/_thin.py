@@ -36,7 +36,7 @@ from ._kernel import AngularMass, deflected_kinks, straight_kinks
 NEWTON_STEPS = 6  # for the incoming angle that lands at an edge after both faces
 # µm or rad: keeps w / reach and w / u finite (and 0 for w = 0); its fourth power stays a normal
 # float32 number, so that reverse-mode derivatives through 1 / u^2 stay finite in float32
-_TINY = 1e-9
+TINY = 1e-9
 _NEVER = 1.0  # rad: an angle limit no paraxial ray reaches
 
 
@@ -64,7 +64,7 @@ def face_limits(restrict, z_lo, z_hi):
     w, forward = restrict[:2]
 
     def limits(z):
-        reach = jnp.maximum(jnp.where(forward, z_hi - z, z - z_lo), _TINY)
+        reach = jnp.maximum(jnp.where(forward, z_hi - z, z - z_lo), TINY)
         cut = w / reach
         return cut, jnp.where(forward, _NEVER, cut), jnp.where(forward, cut, _NEVER)
 
@@ -73,11 +73,11 @@ def face_limits(restrict, z_lo, z_hi):
 
 def root(x):
     """sqrt with finite derivatives where its argument is clipped at 0 (as ``_kernel._safe_sqrt``)."""
-    return jnp.sqrt(jnp.maximum(x, _TINY**2))
+    return jnp.sqrt(jnp.maximum(x, TINY**2))
 
 
 def _safe(d):
-    return jnp.where(jnp.abs(d) > _TINY, d, _TINY)
+    return jnp.where(jnp.abs(d) > TINY, d, TINY)
 
 
 def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
@@ -90,7 +90,7 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
     w, forward = restrict[:2]
     # the first face limits the outgoing angle of refracted rays, sqrt(a^2 - k) at a fan's end
     out = (lambda a: a) if k is None else (lambda a: root(jnp.maximum(a * a - k, 0.0)))
-    ends = tuple(jnp.where(forward, z_hi - w / jnp.maximum(out(a), _TINY), z_lo + w / jnp.maximum(a, _TINY))
+    ends = tuple(jnp.where(forward, z_hi - w / jnp.maximum(out(a), TINY), z_lo + w / jnp.maximum(a, TINY))
                  for a in fan)
     stays = (w * distance_um - aim * z_hi) / _safe(w - aim)  # aim / (distance - z) = w / (z_hi - z)
     started = (w * distance_um + aim * z_lo) / _safe(w + aim)  # aim / (distance - z) = w / (z - z_lo)
@@ -99,7 +99,7 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
         for _ in range(3):
             g = aim / (distance_um - jnp.clip(started, z_lo, z_hi))
             incoming = jnp.where(aim > 0, root(jnp.maximum(g * g + k, 0.0)), -g)
-            started = z_lo + w / jnp.maximum(incoming, _TINY)
+            started = z_lo + w / jnp.maximum(incoming, TINY)
     return (jnp.where(forward, stays, started),) + ends
 
 
@@ -110,13 +110,13 @@ def _weighted_mass(mass: AngularMass, angle_of, u_lo, u_hi, c, nodes, weights):
     c = 0 this is the mass between angle_of(u_lo) and angle_of(u_hi), exactly.
     """
     def factor(u):
-        return jnp.exp(-c / jnp.maximum(u, _TINY))
+        return jnp.exp(-c / jnp.maximum(u, TINY))
 
     u_lo, u_hi, c = jnp.broadcast_arrays(u_lo, u_hi, c)
     base = mass.primitive(angle_of(u_lo))
     along = np.asarray(nodes).reshape((-1,) + (1,) * u_lo.ndim)
     u = u_lo + (u_hi - u_lo) * along
-    slope = factor(u) * c / jnp.square(jnp.maximum(u, _TINY))  # d factor / du
+    slope = factor(u) * c / jnp.square(jnp.maximum(u, TINY))  # d factor / du
     integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(angle_of(u)) - base), 1)
     return factor(u_hi) * (mass.primitive(angle_of(u_hi)) - base) - (u_hi - u_lo) * integral
 
@@ -138,7 +138,7 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
 
     def mass_at(z):
         return AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um,
-                           floor=w / jnp.maximum(z_hi - z, _TINY))
+                           floor=w / jnp.maximum(z_hi - z, TINY))
 
     def nodes(kinks, aim, cuts):
         z, dz = depth_nodes(mass_at, kinks, aim, distance_um, z_lo, z_hi, group, cuts)
@@ -155,7 +155,7 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     z, scale, grazing = nodes(straight_kinks, aim, reach + (in_b,))  # (N, e)
     mass = mass_at(z)
     end = jnp.clip(grazing, mass.a_min, mass.a_max)
-    split = jnp.clip(w / jnp.maximum(-z, _TINY), mass.a_min, end)  # below: still in B at z = 0
+    split = jnp.clip(w / jnp.maximum(-z, TINY), mass.a_min, end)  # below: still in B at z = 0
     base = mass.primitive(mass.a_min)
     stepped = jnp.where(z > 0, transmitted[0] * (mass.primitive(end) - base),
                         transmitted[1] * (mass.primitive(split) - base)
@@ -174,20 +174,20 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     # meets the second face's critical angle
     kappa_l = k_ab_l - k_ac_l
     u_edge = root(jnp.maximum(jnp.square((aim_l - w) / (distance_um - z_hi)) - kappa_l, 0.0))
-    floor_cut = jnp.where((aim_l > w) & (u_edge > 0), z_hi - w / jnp.maximum(u_edge, _TINY), z_hi)
-    critical_cut = z_hi - w / jnp.maximum(root(jnp.maximum(-kappa_l, 0.0)), _TINY)
+    floor_cut = jnp.where((aim_l > w) & (u_edge > 0), z_hi - w / jnp.maximum(u_edge, TINY), z_hi)
+    critical_cut = z_hi - w / jnp.maximum(root(jnp.maximum(-kappa_l, 0.0)), TINY)
     def end_cut(a):  # where the edge's ray is the one that came in at angle a (the fan's ends)
         u_end = root(jnp.maximum(a * a - k_ab_l, 0.0))
         out = root(jnp.maximum(a * a - k_ac_l, 0.0))
-        return distance_um - (aim_l - w) / jnp.maximum(out, _TINY) - w / jnp.maximum(u_end, _TINY)
+        return distance_um - (aim_l - w) / jnp.maximum(out, TINY) - w / jnp.maximum(u_end, TINY)
 
-    floor_ends = tuple(z_hi - w / jnp.maximum(root(jnp.maximum(a * a - k_ab_l, 0.0)), _TINY)
+    floor_ends = tuple(z_hi - w / jnp.maximum(root(jnp.maximum(a * a - k_ab_l, 0.0)), TINY)
                        for a in (view.a_min, view.a_max))  # u = w / (z_hi - z) at the fan's ends
     z, scale, grazing = nodes(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0), aim_l,
                               (floor_cut, critical_cut, end_cut(view.a_min), end_cut(view.a_max)) + floor_ends)
     mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
     k_ab_n, kappa = k_ab.reshape(per_lam), (k_ab - k_ac).reshape(per_lam)
-    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, _TINY), root(jnp.maximum(-kappa, 0.0)))
+    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, TINY), root(jnp.maximum(-kappa, 0.0)))
     a_lo = jnp.clip(root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
     u_lo = root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
     u_hi = jnp.maximum(root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
@@ -219,7 +219,7 @@ def guided_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_u
     cell = lo + (hi - lo) * np.linspace(0.0, 1.0, group.guided_cells + 1)[:, None, None]  # (n + 1, l, 1)
     density = jnp.diff(front.cdf(cell), axis=0)  # the rays of each cell, exactly
     a = 0.5 * (cell[1:] + cell[:-1])  # (n, l, 1)
-    width = jnp.maximum(w, _TINY)
+    width = jnp.maximum(w, TINY)
     run = a * depth_um
     turns = jnp.floor(run / width)
     r = run - turns * width
@@ -240,14 +240,14 @@ def _landing_u(aim, lever, w, kappa, u_lo, u_hi):
     wherever u > w / lever, by Newton steps from the solution for w = 0.
     """
     def a_c(u):
-        return root(jnp.maximum(u * u + kappa, _TINY**2))
+        return root(jnp.maximum(u * u + kappa, TINY**2))
 
     first = (aim - w) / lever
     u = jnp.clip(root(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
     for _ in range(NEWTON_STEPS):
-        out, safe = a_c(u), jnp.maximum(u, _TINY)
+        out, safe = a_c(u), jnp.maximum(u, TINY)
         arm = lever - w / safe
         value = out * arm + w - aim
         slope = u / out * arm + out * w / (safe * safe)
-        u = jnp.clip(u - value / jnp.maximum(slope, _TINY), u_lo, u_hi)
+        u = jnp.clip(u - value / jnp.maximum(slope, TINY), u_lo, u_hi)
     return u
