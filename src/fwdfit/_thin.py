@@ -28,6 +28,7 @@ Local frame and units as in ``_kernel``; angles are slopes (rad), lengths µm.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -242,12 +243,18 @@ def _landing_u(aim, lever, w, kappa, u_lo, u_hi):
     def a_c(u):
         return root(jnp.maximum(u * u + kappa, TINY**2))
 
-    first = (aim - w) / lever
-    u = jnp.clip(root(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
-    for _ in range(NEWTON_STEPS):
+    def newton(u):
         out, safe = a_c(u), jnp.maximum(u, TINY)
         arm = lever - w / safe
         value = out * arm + w - aim
         slope = u / out * arm + out * w / (safe * safe)
-        u = jnp.clip(u - value / jnp.maximum(slope, TINY), u_lo, u_hi)
-    return u
+        return jnp.clip(u - value / jnp.maximum(slope, TINY), u_lo, u_hi)
+
+    first = (aim - w) / lever
+    u = jnp.clip(root(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
+    for _ in range(NEWTON_STEPS - 1):
+        u = newton(u)
+    # the last step from the converged root, held constant, carries the derivatives: at a
+    # root they are the implicit ones, -(d value / d parameter) / slope, and reverse mode
+    # differentiates one step rather than all of them
+    return newton(jax.lax.stop_gradient(u))
