@@ -47,8 +47,8 @@ def scene_path(tmp_path_factory):
 @pytest.fixture(scope="module")
 def sampled(scene_path, tmp_path_factory):
     out = tmp_path_factory.mktemp("out") / "fit"
-    status = main(["fit", str(scene_path), "--out", str(out), "--quiet", "--sample", "250",
-                   "--chains", "2", "--warmup", "150"])
+    status = main(["fit", str(scene_path), "--out", str(out), "--quiet", "--sample", "150",
+                   "--chains", "2", "--warmup", "100"])
     return status, out
 
 
@@ -67,7 +67,8 @@ def test_log_jacobian_of_the_bound_transform(low, high):
     assert np.allclose(np.asarray(p.from_unit(jnp.asarray(u), jnp)), p.from_unit(u), rtol=1e-12)
 
 
-@pytest.mark.slow  # about 40 s on 2 cores: fit, gradient compile, 2 x (150 + 250) NUTS steps
+@pytest.mark.slow  # about 40 s on 2 cores: fit, gradient compile, 2 x (100 + 150) NUTS steps
+# (measured idle: sampling 25 s, bulk ESS 311-345, R-hat <= 1.023; 2 x (150 + 250) took 48 s)
 def test_posterior_matches_the_least_squares_fit(sampled):
     status, out = sampled
     assert status == 0
