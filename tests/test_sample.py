@@ -31,6 +31,7 @@ TRUTH = {"sample.centre_um": 2.0, "layers.Al.thickness_um": 1000.0, "layers.Al.s
 
 VARY = ("sample.centre_um", "layers.Al.thickness_um", "layers.Al.sld_e6_per_A2")
 BOUNDS = {"layers.Al.thickness_um": (900.0, 1100.0)}
+DRAWS = 150  # per chain, 2 chains
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +48,7 @@ def scene_path(tmp_path_factory):
 @pytest.fixture(scope="module")
 def sampled(scene_path, tmp_path_factory):
     out = tmp_path_factory.mktemp("out") / "fit"
-    status = main(["fit", str(scene_path), "--out", str(out), "--quiet", "--sample", "150",
+    status = main(["fit", str(scene_path), "--out", str(out), "--quiet", "--sample", str(DRAWS),
                    "--chains", "2", "--warmup", "100"])
     return status, out
 
@@ -100,8 +101,8 @@ def test_chains_csv_and_corner_plot_written(sampled):
     header = (out / "chains.csv").read_text().splitlines()[0].split(",")
     assert header == ["chain", "draw", *TRUTH]
     rows = np.loadtxt(out / "chains.csv", delimiter=",", skiprows=1)
-    assert rows.shape == (500, 5)
-    assert sorted(set(rows[:, 0])) == [0.0, 1.0] and rows[:, 1].max() == 249
+    assert rows.shape == (2 * DRAWS, 5)
+    assert sorted(set(rows[:, 0])) == [0.0, 1.0] and rows[:, 1].max() == DRAWS - 1
     assert np.all((rows[:, 3] > 900) & (rows[:, 3] < 1100))  # inside the bounds
     posterior = json.loads((out / "posterior.json").read_text())
     assert rows[:, 3].mean() == pytest.approx(posterior["parameters"]["layers.Al.thickness_um"]["mean"],
