@@ -14,11 +14,11 @@ instrument's values, pixels, blur sub-bins, quadrature sizes, interfaces, apertu
 Profiles have 8 pixels, and the default run draws the static choices from three
 configurations at the domain's edges (``FEW_SHAPES``) with every other key over its
 whole domain: 60 valid and 150 broken scenes, about 20 compilations, 60-80 s on two
-loaded cores (30-40 s before thin layers were coupled: a scene whose drawn thickness is below
-the sideways drift compiles the coupled kernels). The slow run (``FWDFIT_FUZZ=many``; the CI runs slow tests, so these wait for the
-variable) draws the static choices from their whole
-domain too: 600 scenes, most compiled anew (~0.7 s each, about 7 min), and 3000 broken
-ones (about 2 min).
+loaded cores (30-40 s before thin layers were coupled: a scene whose drawn thickness is
+below the sideways drift compiles the coupled kernels). The slow run
+(``FWDFIT_FUZZ=many``; the CI runs slow tests, so these wait for the variable) draws the
+static choices from their whole domain too: 600 scenes, most compiled anew (~0.7 s each,
+about 7 min), and 3000 broken ones (about 2 min).
 """
 
 from __future__ import annotations
