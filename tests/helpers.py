@@ -376,10 +376,12 @@ def free_layer_parameters(scene) -> list[str]:
 
 
 def skin_scene(thickness_um, free=()):
-    """An oxide skin (SLD 4.5, mu 100 /m) on 1 mm of Al, ICON 4 Å line, the outer edge at 1.1 mm."""
+    """An oxide skin (SLD 4.5, mu 100 /m) on 1 mm of Al, ICON 4 Å line, the outer edge at 1.1 mm;
+    thickness_um None: the bare Al block on the same instrument and pixels."""
     import fwdfit
 
-    layers = [oxide_layer("skin", thickness_um, 4.5, 100.0), al_layer()]
+    skin = [] if thickness_um is None else [oxide_layer("skin", thickness_um, 4.5, 100.0)]
+    layers = skin + [al_layer()]
     return make_scene(layers, profiles=[("d01.1mm", 1.1, -530.0, -470.0)],
                       spectrum=fwdfit.GaussianLine(4.0, 0.15), aperture="circular",
                       aperture_distance_m=5.5, vary=free)
