@@ -277,7 +277,7 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
         forget_compiled()  # this process's compiled programs: the second Fitter must load the stored one
         first = fwdfit.Fitter(path)
         stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.jaxexport"))
-        assert len(stored) == 1
+        assert len(stored) == len(first.model.groups) == 1
         forget_compiled()
         second = fwdfit.Fitter(path)
         values = np.array([[990.0], [1010.0]])
@@ -285,10 +285,42 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
         assert second.compile_time_s < first.compile_time_s
         # a third Fitter of the geometry in this process (a Dask worker's next image) reuses the program
         third = fwdfit.Fitter(path)
-        assert third.predict._compiled is second.predict._compiled
+        assert all(a is b for a, b in zip(third.predict.programs, second.predict.programs, strict=True))
         np.testing.assert_array_equal(third.predict(values)[0], first.predict(values)[0])
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_programs_per_group_predict_the_model_in_scene_order():
+    """The Predictor's programs (one per group of profiles) put their rows back in the
+    scene's order: profiles of one plan that are not neighbours in the scene (ICON, BOA,
+    ICON) come out as the whole model in one program computes them, with norm and
+    background applied."""
+    from fwdfit.inference import Predictor, assembler, free_parameters
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "al_block" / "scene.toml"
+    scene = fwdfit.load_scene(example)
+    profiles = {p.name: p for p in scene.profiles}
+    order = ("icon_l2.7A", "boa_d01.1mm", "icon_l4.6A")
+    scene = dataclasses.replace(scene, accuracy=0.01, profiles=tuple(
+        dataclasses.replace(profiles[name], norm=1.0 + 0.01 * i, background=0.001 * i)
+        for i, name in enumerate(order)))
+    free = free_parameters(scene, ["sample.tilt_deg", "layers.Al.thickness_um"], None)
+    model = fwdfit.build_model(scene, free=[p.name for p in free], tilt_range_deg=(0.0, 0.3))
+    assert sorted(group.index for group in model.groups) == [(0, 2), (1,)]
+    assemble = assembler(scene, free)
+    values = np.array([[0.2, 990.0], [0.25, 1005.0]])
+    T, T_att = Predictor(model, assemble, len(free))(values)
+
+    def whole(v):
+        params, norm, background = assemble(v)
+        return model.flat(params, norm, background)
+
+    for row, v in zip(range(2), values):
+        expected = jax.jit(whole)(v)
+        np.testing.assert_allclose(T[row], expected[0], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(T_att[row], expected[1], rtol=0, atol=1e-13)
+    assert T.shape == (2, sum(len(profiles[name].x_um) for name in order))
 
 
 _SHARDED_PROBE = """
@@ -300,7 +332,7 @@ fitter = fwdfit.Fitter(sys.argv[1])
 values = np.array([[990.0], [995.0], [1000.0], [1005.0], [1010.0]])
 single = fitter.predict(values)
 sharded = Predictor(fitter.model, fitter.assemble, 1, rows_per_call=3, devices=jax.devices())
-spread = sharded._compiled.input_shardings[0][1].device_set
+spread = sharded.programs[0].input_shardings[0][1].device_set
 both = sharded(values)
 print(len(jax.devices()), sharded.rows_per_call, len(spread),
       max(float(np.max(np.abs(a - b))) for a, b in zip(single, both)))

@@ -63,33 +63,52 @@ def quality_dict(quality) -> dict:
             "failing": [region(r) for r in quality.failing]}
 
 
-def plot_profile(path: Path, profile, offset_ticks: bool = True) -> None:
+class ProfilePlot:
     """Data with fit and residuals (top), attenuation-only fit against corrected data (bottom).
 
-    Drawn on a ``Figure`` of its own: pyplot's state and backend are left alone.
+    One ``Figure`` of its own (pyplot's state and backend are left alone), built once and
+    drawn again for each profile: its axes and ticks cost more than the drawing (0.35 s a
+    plot when each profile builds its own, 0.15 s when they share one).
     """
-    from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(7, 8))
-    top, middle, bottom = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1, 3]})
-    fig.subplots_adjust(left=0.14, right=0.97, top=0.95, bottom=0.07, hspace=0.08)  # tight_layout: 3x slower
-    x = profile.x_um
-    top.plot(x, profile.T, ".", ms=2, color="0.4", label="measured T")
-    top.plot(x, profile.T_model, "-", lw=1, color="C3", label="fit T_model")
-    top.set_ylabel("transmission T")
-    top.legend(loc="lower center", fontsize=8)
-    top.set_title(profile.name)
-    middle.plot(x, (profile.T - profile.T_model) / profile.sigma, ".", ms=2, color="C0")
-    middle.axhline(0, color="k", lw=0.5)
-    middle.set_ylabel("residual / σ")
-    bottom.plot(x, profile.T_corrected, ".", ms=2, color="0.4", label="T_corrected (refraction removed)")
-    bottom.fill_between(x, profile.T_att - profile.T_att_err, profile.T_att + profile.T_att_err,
-                        color="C2", alpha=0.3, lw=0)
-    bottom.plot(x, profile.T_att, "-", lw=1, color="C2", label="T_att (fit, ±1σ)")
-    bottom.set_ylabel("transmission T")
-    bottom.set_xlabel("x (µm)")
-    bottom.legend(loc="lower center", fontsize=8)
-    fig.savefig(path, dpi=100)
+    def __init__(self):
+        from matplotlib.figure import Figure
+
+        self.figure = fig = Figure(figsize=(7, 8))
+        self.axes = top, middle, bottom = fig.subplots(3, 1, sharex=True,
+                                                       gridspec_kw={"height_ratios": [3, 1, 3]})
+        fig.subplots_adjust(left=0.14, right=0.97, top=0.95, bottom=0.07, hspace=0.08)  # tight_layout: 3x slower
+        (self.measured,) = top.plot([], [], ".", ms=2, color="0.4", label="measured T")
+        (self.model,) = top.plot([], [], "-", lw=1, color="C3", label="fit T_model")
+        top.set_ylabel("transmission T")
+        top.legend(loc="lower center", fontsize=8)
+        (self.residual,) = middle.plot([], [], ".", ms=2, color="C0")
+        middle.axhline(0, color="k", lw=0.5)
+        middle.set_ylabel("residual / σ")
+        (self.corrected,) = bottom.plot([], [], ".", ms=2, color="0.4", label="T_corrected (refraction removed)")
+        (self.attenuation,) = bottom.plot([], [], "-", lw=1, color="C2", label="T_att (fit, ±1σ)")
+        bottom.set_ylabel("transmission T")
+        bottom.set_xlabel("x (µm)")
+        bottom.legend(loc="lower center", fontsize=8)
+        self.band = None
+
+    def save(self, path: Path, profile) -> None:
+        """Draw ``profile`` (a ``FittedProfile``) and write it to ``path`` (PNG)."""
+        x = profile.x_um
+        self.measured.set_data(x, profile.T)
+        self.model.set_data(x, profile.T_model)
+        self.residual.set_data(x, (profile.T - profile.T_model) / profile.sigma)
+        self.corrected.set_data(x, profile.T_corrected)
+        self.attenuation.set_data(x, profile.T_att)
+        if self.band is not None:
+            self.band.remove()
+        self.band = self.axes[2].fill_between(x, profile.T_att - profile.T_att_err,
+                                              profile.T_att + profile.T_att_err, color="C2", alpha=0.3, lw=0)
+        for axes in self.axes:
+            axes.relim()
+            axes.autoscale_view()
+        self.axes[0].set_title(profile.name)
+        self.figure.savefig(path, dpi=100, pil_kwargs={"compress_level": 1})  # zlib 6: +50 ms a plot
 
 
 def write_fit(result: FitResult, out_dir: Path) -> None:
@@ -110,11 +129,12 @@ def write_fit(result: FitResult, out_dir: Path) -> None:
         (staging / "result.json").write_text(summary)
         plotted = set(np.linspace(0, len(result.profiles) - 1, MAX_PROFILE_PLOTS).round().astype(int).tolist()
                       if len(result.profiles) > MAX_PROFILE_PLOTS else range(len(result.profiles)))
+        plot = ProfilePlot() if plotted else None
         for i, p in enumerate(result.profiles):
             write_columns(staging / f"{p.name}.csv", {
                 "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
                 "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
             if i in plotted:
-                plot_profile(staging / f"{p.name}.png", p)
+                plot.save(staging / f"{p.name}.png", p)
         write_tof(result, staging)
         (staging / "fitted_scene.toml").write_text(dump_scene(result.scene, out_dir, comment="written by fwdfit"))

@@ -148,19 +148,25 @@ class ForwardModel(eqx.Module):
             out.append((blur_and_bin(T_g), blur_and_bin(T_att_g)))
         return tuple(out)
 
-    def flat(self, params: ModelParams, norm=None, background=None) -> tuple[Array, Array]:
-        """(T, T_att) of every profile's pixels concatenated in scene order (n_pixel_total,),
-        ``norm * T + background`` when given (per profile, (n_profile,)); one gather, not one
-        op per profile."""
-        parts_T, parts_att = [], []
+    def grouped(self, params: ModelParams, norm=None, background=None) -> tuple[tuple[Array, Array], ...]:
+        """(T, T_att) per group, each (n_group_profiles * n_pixel,): the group's profiles in
+        ``group.index`` order, ``norm * T + background`` when given (per profile of the scene,
+        (n_profile,))."""
+        out = []
         for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
             index = np.asarray(group.index)
             n = 1.0 if norm is None else norm[index][:, None]
             b = 0.0 if background is None else background[index][:, None]
-            parts_T.append((n * T_g + b).ravel())
-            parts_att.append((n * T_att_g + b).ravel())
+            out.append(((n * T_g + b).ravel(), (n * T_att_g + b).ravel()))
+        return tuple(out)
+
+    def flat(self, params: ModelParams, norm=None, background=None) -> tuple[Array, Array]:
+        """(T, T_att) of every profile's pixels concatenated in scene order (n_pixel_total,),
+        ``norm * T + background`` when given (per profile, (n_profile,)); one gather, not one
+        op per profile."""
+        parts = self.grouped(params, norm, background)
+        T, T_att = (jnp.concatenate([part[k] for part in parts]) for k in (0, 1))
         order = self.scene_order
-        T, T_att = jnp.concatenate(parts_T), jnp.concatenate(parts_att)
         return (T, T_att) if order is None else (T[order], T_att[order])
 
     @property
