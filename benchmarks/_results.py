@@ -1,8 +1,12 @@
 """Where benchmark results go (benchmarks/results/, or benchmarks/results/quick/ for --quick
-runs), and the machine record that goes with them."""
+runs), the machine record that goes with them, and the plain command timed as a user runs it."""
 
+import json
 import os
 import platform
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,3 +25,19 @@ def machine_record() -> dict:
 
     return {"cpus": os.cpu_count(), "platform": platform.platform(), "device": str(jax.devices()[0]),
             "jax": jax.__version__, "python": platform.python_version()}
+
+
+def run_command(scene: Path, out: Path, cache: Path) -> dict:
+    """``fwdfit fit SCENE --out OUT`` in a fresh process with the compilation cache in
+    ``cache`` (empty: cold; filled by an earlier run: warm): wall time, exit status and
+    what result.json says."""
+    start = time.perf_counter()
+    env = {**os.environ, "FWDFIT_CACHE_DIR": str(cache)}
+    run = subprocess.run([sys.executable, "-m", "fwdfit.cli", "fit", str(scene), "--out", str(out), "--quiet"],
+                         env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    result = json.loads((out / "result.json").read_text())
+    return {"status": run.returncode, "wall_s": round(wall, 2), "compile_s": round(result["compile_time_s"], 2),
+            "solve_s": round(result["solve_time_s"], 2), "chi2": result["chi2"],
+            "chi2_reduced": round(result["chi2_reduced"], 4), "accepted": result["accepted"],
+            "values": {k: v["value"] for k, v in result["parameters"].items()}}

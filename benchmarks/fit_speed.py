@@ -10,9 +10,10 @@ pixels per profile.
 
 Data: ``fwdfit.simulate`` at the truth plus 1 % Gaussian noise (T_err = 0.01); the
 fit starts 10 % away in every layer value, at tilt 0.20° and centre 0. Each case runs
-in a fresh process: compile time (the solver and the exact Jacobian, compiled
-together by ``fwdfit.Fitter``), fit time after compilation, steps, peak memory (the
-process's maximum resident set) and the fitted values against the truth.
+in a fresh process: compile time (``fwdfit.Fitter``'s programs), fit time after
+compilation, steps, peak memory (the process's maximum resident set) and the fitted
+values against the truth. The joint case is also run as the plain command
+(``fwdfit fit start.toml --out DIR`` in a fresh process), cold and warm.
 
     python benchmarks/fit_speed.py [--quick]
 
@@ -34,7 +35,7 @@ import time
 import warnings
 from pathlib import Path
 
-from _results import results_dir
+from _results import results_dir, run_command
 from _scenes import instruments, spectra
 
 BOA_MM = (1.1, 4.8, 8.5, 12.2, 15.9, 19.6, 23.3, 27.0, 30.7, 34.4)
@@ -99,7 +100,8 @@ def run_case(case: dict) -> dict:
         files[p.name] = folder / f"{p.name}.csv"
         np.savetxt(files[p.name], np.c_[p.x_um, T, np.full_like(T, NOISE)], delimiter=",",
                    header="x_um,T,T_err", comments="")
-    start_scene = fwdfit.load_scene(fwdfit.save_scene(scene(case, truth=False, files=files), folder / "start.toml"))
+    scene_path = fwdfit.save_scene(scene(case, truth=False, files=files), folder / "start.toml")
+    start_scene = fwdfit.load_scene(scene_path)
     truth = {"sample.tilt_deg": 0.24, "sample.centre_um": 3.0}
     for name in STACKS[case["layers"]]:
         for key, value in zip(("thickness_um", "sld_e6_per_A2", "mu_per_m"), LAYERS[name]):
@@ -116,7 +118,7 @@ def run_case(case: dict) -> dict:
             "steps": result.n_steps, "converged": result.converged, "chi2_reduced": result.chi2_reduced,
             "max_abs_pull": float(max(abs(v) for v in pulls.values())),
             "thickness_error_um": float(abs(result["layers.Al.thickness_um"][0] - 1000.0)),
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "scene": str(scene_path)}
 
 
 def cases(quick: bool) -> list[dict]:
@@ -181,6 +183,12 @@ def main() -> None:
                              text=True, check=True)
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
         r = rows[-1]
+        if r["label"].startswith("joint"):  # the plain command too, cold and warm, as a user runs it
+            folder = Path(r["scene"]).parent
+            for kind in ("cold", "warm"):
+                r[f"command_{kind}"] = run_command(Path(r["scene"]), folder / kind, folder / "cache")
+            print(f"{r['label']}: fwdfit fit cold {r['command_cold']['wall_s']} s, "
+                  f"warm {r['command_warm']['wall_s']} s", flush=True)
         print(f"{r['label']:<24} {r['pixels']:6d} px {r['free_parameters']:3d} free  compile {r['compile_s']:6.1f} s"
               f"  fit {r['fit_s']:6.1f} s  {r['steps']:3d} steps  {r['peak_rss_mb']:6.0f} MB  "
               f"chi2_red {r['chi2_reduced']:.3f}  max |pull| {r['max_abs_pull']:.2f}", flush=True)

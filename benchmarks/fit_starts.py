@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -46,24 +44,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import test_fit_starts as case  # noqa: E402
 
 import fwdfit  # noqa: E402
-from _results import machine_record, results_dir  # noqa: E402
+from _results import machine_record, results_dir, run_command  # noqa: E402
 
 REACHED_DELTA_CHI2 = 0.5
 BOX_FACTORS = {"thickness_um": (0.5, 1.5), "sld_e6_per_A2": (0.3, 2.0), "mu_per_m": (0.3, 3.0)}
-
-
-def _command(scene: Path, out: Path, cache: Path) -> dict:
-    """The plain command in a fresh process: wall time, exit status and result.json."""
-    start = time.perf_counter()
-    env = {**os.environ, "FWDFIT_CACHE_DIR": str(cache)}
-    run = subprocess.run([sys.executable, "-m", "fwdfit.cli", "fit", str(scene), "--out", str(out), "--quiet"],
-                         env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    result = json.loads((out / "result.json").read_text())
-    return {"status": run.returncode, "wall_s": round(wall, 2), "compile_s": round(result["compile_time_s"], 2),
-            "solve_s": round(result["solve_time_s"], 2), "chi2": result["chi2"],
-            "chi2_reduced": round(result["chi2_reduced"], 4), "accepted": result["accepted"],
-            "values": {k: v["value"] for k, v in result["parameters"].items()}}
 
 
 def _truth_20(truth: dict, rng) -> dict:
@@ -93,8 +77,8 @@ def run_dataset(name: str, draws: int, folder: Path, rng) -> list[dict]:
         where.mkdir()
         scene = case.measured_scene(where, name, start)
         cache = where / "cache"
-        cold = _command(scene, where / "cold", cache)
-        warm = _command(scene, where / "warm", cache)
+        cold = run_command(scene, where / "cold", cache)
+        warm = run_command(scene, where / "warm", cache)
         rows.append({"dataset": name, "start": kind, "runs": 1, "cold": cold, "warm": warm})
         print(f"{name:8s} {kind:11s} cold {cold['wall_s']:6.1f} s (compile {cold['compile_s']:5.1f}, "
               f"solve {cold['solve_s']:5.1f}), warm {warm['wall_s']:5.1f} s, chi2/dof {cold['chi2_reduced']}, "

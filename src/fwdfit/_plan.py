@@ -406,7 +406,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     any_rough = any(face.rough for face in interfaces)
     plans: dict[_PlanKey, list[int]] = {}
     per_profile = []
-    depth_nodes = {}
+    depth_nodes, windows = {}, {}
     breaks_A = bragg_breaks_A(scene, accuracy)
     for i, profile in enumerate(scene.profiles):
         instrument = scene.instruments[profile.instrument]
@@ -423,8 +423,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
         window_um = _window_um(scene, instrument, spectrum, profile, margin, tilt_range_deg,
                                1e-3 * rough_mrad * _ROUGH_REACH if any_rough else 0.0)
-        window = math.ceil(window_um / bin_um) + 2
-        window = min(_ladder(window), (n_edges - 1) // 2)
+        windows[i] = min(math.ceil(window_um / bin_um) + 2, (n_edges - 1) // 2)
+        window = min(_ladder(windows[i]), (n_edges - 1) // 2)  # the plan's class; its groups take what they need
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm)
         lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
@@ -440,7 +440,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
                             _mu_tables(scene, fine_lam)))
     groups = []
     thin_nodes, thin_weights = _unit_gauss(_THIN_ANGLE_NODES if thin else 0)
-    for (instrument_name, n_edges, n_sub, n_pad, strata, window), index in _split_by_nodes(plans, per_profile):
+    for (instrument_name, n_edges, n_sub, n_pad, strata, _), index in _split_by_nodes(plans, per_profile):
         instrument = scene.instruments[instrument_name]
         z_nodes, z_weights = _unit_gauss(max(depth_nodes[i] for i in index))
         thin_z_nodes, thin_z_weights = _unit_gauss(_THIN_DEPTH_FACTOR * len(z_nodes) if thin else 0)
@@ -452,7 +452,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             aperture_um=instrument.aperture_mm * 1e3,
             aperture_distance_um=instrument.aperture_distance_m * 1e6,
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
-            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
+            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=max(windows[i] for i in index),
             z_nodes=z_nodes, z_weights=z_weights, thin_nodes=thin_nodes, thin_weights=thin_weights,
             guided_cells=_GUIDED_CELLS if thin else 0, thin_z_nodes=thin_z_nodes, thin_z_weights=thin_z_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
