@@ -9,8 +9,8 @@ The strategy, each step in its own module:
 4. uncertainties from the Jacobian at the optimum (``_uncertainty``);
 5. the quality gate: does the data accept the fit, and if not, where not (``_quality``).
 
-Every model evaluation goes through one compiled program (``_predict``), so a fit
-compiles the model once; the residuals (norm * T + background - T_meas) / sigma
+Every model evaluation goes through the compiled model (``_predict``: one program per
+group of profiles), so a fit compiles the model once; the residuals (norm * T + background - T_meas) / sigma
 are formed around it in NumPy.
 """
 

@@ -1,4 +1,4 @@
-"""Model predictions for many parameter vectors from one compiled program.
+"""Model predictions for many parameter vectors from the model compiled once per geometry.
 
 Every model evaluation of a fit (the global search, the solver's trial points and
 finite differences, the uncertainties) goes through ``Predictor``: the model is

@@ -8,7 +8,7 @@ little contrast to be read to a µm (a weak absorber in noisy bins), what the da
 (positions, plateaus) first settles by a local solve at the starting tilt and SLDs.
 The scan then evaluates chi-square, model and data smoothed alike, on a grid of tilts (refined
 around the best few), then on a grid of SLD scales at the best tilts, all through
-the one compiled model; the local solver then starts from the best few points.
+the compiled model; the local solver then starts from the best few points.
 """
 
 from __future__ import annotations

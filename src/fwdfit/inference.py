@@ -7,8 +7,9 @@ log-likelihood on the host and as a JAX function), shared by the solver and the 
 unit, default, bounds, step, where the model takes it).
 ``free_parameters`` resolves a scene's ``[fit]`` into ``FreeParameter`` values and
 ``assembler`` maps their values to ``ModelParams``; ``Predictor`` evaluates the model
-(T rows for free values) with one compiled program per group of profiles, kept between fits (``forget_compiled`` drops this
-process's copies, ``cache_dir`` is the on-disk cache); ``levenberg_marquardt`` is the
+(T rows for free values), compiled once as one program per group of profiles and kept
+between fits (``forget_compiled`` drops this process's copies, ``cache_dir`` is the
+on-disk cache); ``levenberg_marquardt`` is the
 default solver of residual rows; ``outer_edges``, ``refraction_edges``, ``segment`` and
 ``attenuation_from_plateau`` read starts off the data; ``assess`` and ``runs_z`` are the
 quality gate; ``covariance`` and ``errors_and_correlation`` the uncertainty from the
