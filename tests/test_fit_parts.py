@@ -269,14 +269,15 @@ def _open_beam_line_scene(tmp_path, accuracy: float = fwdfit.Scene.accuracy) -> 
 
 def test_compiled_model_is_kept_between_runs(tmp_path):
     """With the cache on, a second Fitter of the same geometry loads the stored program
-    (no tracing, no compilation) and predicts the same numbers to the last bit."""
+    (no tracing, no compilation) and predicts the same numbers to the last bit; a damaged
+    stored program is compiled anew."""
     path = _open_beam_line_scene(tmp_path)
     before = jax.config.jax_compilation_cache_dir
     try:
         fwdfit.enable_compilation_cache(tmp_path / "cache")
         forget_compiled()  # this process's compiled programs: the second Fitter must load the stored one
         first = fwdfit.Fitter(path)
-        stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.jaxexport"))
+        stored = list((tmp_path / "cache" / "fwdfit-programs").glob("*.xla"))
         assert len(stored) == len(first.model.groups) == 1
         forget_compiled()
         second = fwdfit.Fitter(path)
@@ -287,6 +288,12 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
         third = fwdfit.Fitter(path)
         assert all(a is b for a, b in zip(third.predict.programs, second.predict.programs, strict=True))
         np.testing.assert_array_equal(third.predict(values)[0], first.predict(values)[0])
+        # a damaged stored program (a full disk, another jaxlib's) is compiled anew and replaced
+        stored[0].write_bytes(b"not an executable")
+        forget_compiled()
+        fourth = fwdfit.Fitter(path)
+        np.testing.assert_array_equal(fourth.predict(values)[0], first.predict(values)[0])
+        assert stored[0].stat().st_size > 1000
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
 

@@ -1,5 +1,6 @@
-"""JAX's persistent compilation cache in a user cache folder: the second fit of a
-geometry loads its compiled model instead of compiling it again.
+"""A user cache folder for compiled programs: the second fit of a geometry loads its
+compiled model instead of compiling it again (``_predict`` keeps the model's programs
+there; JAX's persistent compilation cache, switched on here, keeps the others).
 
 ``FWDFIT_CACHE_DIR`` names the folder (default: ``$XDG_CACHE_HOME/fwdfit``, else
 ``~/.cache/fwdfit``); ``FWDFIT_CACHE_DIR=off`` (or an empty value) turns the cache off.

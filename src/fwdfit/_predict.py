@@ -4,26 +4,28 @@ Every model evaluation of a fit (the global search, the solver's trial points an
 finite differences, the uncertainties) goes through ``Predictor``: the model is
 traced and compiled once per geometry, with the data, the starts and the smoothing
 outside it, as one program per group of profiles that share a static plan
-(``ProfileGroup``): XLA's CPU runtime evaluates the shipped example's four groups as
-four programs in 13 ms, as one program in 24-35 ms, for the same compile time (the
-programs' outputs are put in scene order in NumPy). Compile time is what a user waits
+(``ProfileGroup``), whose outputs are put in scene order in NumPy. XLA's CPU runtime
+evaluated the shipped example's four groups as four programs in 11-13 ms against
+24-35 ms as one program, for the same compile time (the ten-distance joint scene,
+compute-bound in its kernels: 70 against 73 ms). Compile time is what a user waits
 for on every new geometry, so each program holds one group of the model and nothing
-else. Between runs, JAX's persistent
-cache (``_cache``) keeps the compiled programs, and each program itself is kept as a
-serialized ``jax.export`` module keyed by its static plan, so that a second run of a
-geometry neither traces nor compiles the model (and a scene that shares a group's plan
-with an earlier one reuses that group's program). Within one process (a Dask worker
-fitting image after image, say) the compiled program itself is kept too (``_COMPILED``),
-so a geometry compiles once per process. On a CPU the program takes one
-parameter vector per call (a batch gains no parallelism there); on an accelerator it
-takes ``rows_per_call`` vectors at once (vmap), and on several accelerators those rows
-are sharded across the devices (a 1-D mesh over the rows; the model is replicated).
+else. Between runs, the cache folder (``_cache``) keeps each compiled program
+(``jax.experimental.serialize_executable``) keyed by its static plan, so that a second
+run of a geometry neither traces nor compiles the model (and a scene that shares a
+group's plan with an earlier one reuses that group's program); JAX's persistent cache
+in the same folder serves the other programs (the sampler's gradient, say). Within one process (a Dask worker fitting image after image, say) the
+compiled programs themselves are kept too (``_COMPILED``), so a geometry compiles once
+per process. On a CPU a program takes one parameter vector per call (a batch gains no
+parallelism there); on an accelerator it takes ``rows_per_call`` vectors at once
+(vmap), and on several accelerators those rows are sharded across the devices (a 1-D
+mesh over the rows; the model is replicated).
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import tempfile
 import time
 from pathlib import Path
@@ -32,6 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import serialize_executable
 
 from ._model import ForwardModel
 from ._parameters import Assembler
@@ -72,7 +75,7 @@ class Predictor:
     (``_parameters.assembler``). devices: the devices the rows of a call are sharded
     across (default: every accelerator, or one CPU). Compiling (one program per group of
     the model) happens in the constructor; ``compile_time_s`` says how long it took (short
-    when the persistent cache had it).
+    when the cache folder had the programs).
     """
 
     def __init__(self, model: ForwardModel, assemble: Assembler, n_free: int,
@@ -120,9 +123,13 @@ class Predictor:
         key = _program_key(leaves, example, f"{treedef}|{self.rows_per_call}|{self.n_free}|{len(devices)}")
         compiled = _COMPILED.get(key)
         if compiled is None:
-            # a stored module serves one device; a sharded program is traced here
-            program = _exported(run, leaves, example, key) if len(devices) == 1 else run
-            compiled = jax.jit(program).lower(leaves, example).compile()
+            compile_here = lambda: jax.jit(run).lower(leaves, example).compile()
+            if len(devices) == 1:  # a stored executable serves one device; a sharded program is compiled here
+                trees = (jax.tree_util.tree_structure(((leaves, example), {})),
+                         jax.tree_util.tree_structure((example, example)))
+                compiled = _stored(key, *trees, compile_here)
+            else:
+                compiled = compile_here()
             if len(_COMPILED) >= _MAX_COMPILED:
                 del _COMPILED[next(iter(_COMPILED))]
             _COMPILED[key] = compiled
@@ -149,34 +156,45 @@ class Predictor:
 
 def _program_key(leaves, example, plan: str) -> str:
     """The program's key: plan (text that, with the argument shapes and the versions,
-    identifies the program), the shapes and dtypes, the versions and the backend."""
+    identifies the program), the shapes and dtypes, the versions, the backend and the host CPU."""
     from . import __version__
 
     shapes = ";".join(f"{x.shape}{x.dtype}" for x in [*leaves, example])
-    return hashlib.sha256("|".join([__version__, jax.__version__, jax.default_backend(), plan, shapes])
-                          .encode()).hexdigest()[:32]
+    return hashlib.sha256("|".join([__version__, jax.__version__, jax.default_backend(), _host_cpu(), plan,
+                                    shapes]).encode()).hexdigest()[:32]
 
 
-def _exported(run, leaves, example, key: str):
-    """``run`` as a callable for jit: a stored ``jax.export`` module of it (``key``, from
-    ``_program_key``) when the persistent cache is on (made and stored on the first run),
-    else ``run`` itself.
-    """
+def _host_cpu() -> str:
+    """The host CPU's instruction-set flags (Linux), else its name: an executable compiled
+    for one CPU may not run on another (a cache folder on a shared home)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as stream:
+            return next((line for line in stream if line.startswith("flags")), "")
+    except OSError:
+        return platform.processor()
+
+
+def _stored(key: str, in_tree, out_tree, compile_here):
+    """The compiled program ``key`` (from ``_program_key``) from the cache folder, else
+    ``compile_here()``, stored there for the next run. A stored executable loads in ~0.1 s
+    (JAX's persistent cache takes ~0.2 s, since it must lower the program to find it);
+    without the cache folder nothing is stored."""
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
-        return run
-    path = Path(folder) / "fwdfit-programs" / f"{key}.jaxexport"
+        return compile_here()
+    path = Path(folder) / "fwdfit-programs" / f"{key}.xla"
     try:
-        return jax.export.deserialize(bytearray(path.read_bytes())).call
-    except (OSError, ValueError):
+        return serialize_executable.deserialize_and_load(path.read_bytes(), in_tree, out_tree)
+    except Exception:  # noqa: BLE001 - none yet, or from another jaxlib, or damaged: compile anew
         pass
-    exported = jax.export.export(jax.jit(run))(leaves, example)
+    compiled = compile_here()
     try:
+        serialized, _, _ = serialize_executable.serialize(compiled)
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(handle, "wb") as stream:
-            stream.write(exported.serialize())
+            stream.write(serialized)
         os.replace(temporary, path)
-    except OSError:
-        pass  # a read-only cache: the program is simply traced again next time
-    return exported.call
+    except (OSError, ValueError):
+        pass  # a read-only cache, or a program XLA cannot serialize: compiled again next time
+    return compiled
