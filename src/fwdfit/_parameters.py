@@ -22,13 +22,12 @@ import math
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import _registry as registry
 from ._errors import FwdfitError
 from ._model import ModelParams
-from ._plan import MAX_TILT_DEG, initial_params, layer_value
+from ._plan import MAX_TILT_DEG, initial_params, layer_value, to_device
 from ._scene import Scene
 
 LAYER_FIELDS = tuple(registry.part("layers"))  # per-layer model parameters
@@ -216,7 +215,7 @@ def _by_field(targets: tuple) -> dict[str, tuple[int | None, list[int], list[int
 
 def assembler(scene: Scene, free: tuple[FreeParameter, ...], dtype=None) -> Assembler:
     """The map from free values to model inputs, with every other value from the scene."""
-    as_array = lambda values: jnp.asarray(np.asarray(values, float), dtype)
+    as_array = lambda values: to_device(values, dtype)
     return Assembler(
         base=initial_params(scene, dtype),
         profile_shift_um=as_array([p.shift_um for p in scene.profiles]),

@@ -266,9 +266,9 @@ def _wavelengths(model: ForwardModel, index: int):
     """(wavelength nodes (l,), weights (l,), tabulated mu (l, n_layer) 1/m) of one profile."""
     for group in model.groups:
         if index in group.index:
-            row = group.index.index(index)
-            return (np.asarray(group.step_wavelength_A[row]), np.asarray(group.step_weight[row]),
-                    np.asarray(group.step_mu_table_per_m[row]))
+            row = group.index.index(index)  # rows of NumPy copies: indexing the JAX arrays compiles
+            return tuple(np.asarray(values)[row] for values in
+                         (group.step_wavelength_A, group.step_weight, group.step_mu_table_per_m))
     raise KeyError(index)
 
 
