@@ -52,7 +52,8 @@ def forget_compiled() -> None:
 def _over_rows(one, values):
     """``one`` (a row (n_free,) -> arrays) over rows (rows, n_free), a leading row axis on
     each result. One row (a CPU's call) is traced without vmap: batching every nested
-    operation of the model costs ~15 % of the compile time and ~10 % of the evaluation."""
+    operation of the model cost ~10 % more compile time (the shipped example: 8.3-8.5 s
+    against 7.5 s), for the same evaluation time."""
     if values.shape[0] == 1:
         return tuple(part[None] for part in one(values[0]))
     return jax.vmap(one)(values)
