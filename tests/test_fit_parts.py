@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -328,6 +329,33 @@ def test_programs_per_group_predict_the_model_in_scene_order():
         np.testing.assert_allclose(T[row], expected[0], rtol=0, atol=1e-13)
         np.testing.assert_allclose(T_att[row], expected[1], rtol=0, atol=1e-13)
     assert T.shape == (2, sum(len(profiles[name].x_um) for name in order))
+
+
+def test_a_group_evaluated_in_chunks_equals_its_profiles_alone():
+    """A group's profiles are evaluated in chunks on a CPU (a scan over vmapped chunks, the
+    last padded with copies): seven BOA distances whose plans put five near ones (two per
+    chunk, one padded) and two far ones (one per chunk) in groups give, profile for
+    profile, what each profile's model alone gives (a one-profile group: one vmap)."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "al_block" / "scene.toml"
+    scene = fwdfit.load_scene(example)
+    boa = next(p for p in scene.profiles if p.spectrum == "white")
+    distances = (3.6, 4.0, 4.4, 4.8, 5.0, 23.3, 27.0)
+    scene = dataclasses.replace(scene, profiles=tuple(
+        dataclasses.replace(boa, name=f"d{d}", distance_mm=d, file=None) for d in distances))
+    free = ["sample.tilt_deg", "layers.Al.thickness_um"]
+    build = lambda s: fwdfit.build_model(s, free=free, tilt_range_deg=(-1.0, 1.0))
+    joint = build(scene)
+    assert sorted(len(group.index) for group in joint.groups) == [2, 5]
+    params = fwdfit.initial_params(dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, tilt_deg=0.24)))
+    flat = eqx.filter_jit(lambda model, params: model.flat(params))
+    T, T_att = flat(joint, params)
+    n = len(boa.x_um)
+    for i, profile in enumerate(scene.profiles):
+        alone = dataclasses.replace(scene, profiles=(profile,))
+        expected = flat(build(alone), fwdfit.initial_params(
+            dataclasses.replace(alone, sample=dataclasses.replace(alone.sample, tilt_deg=0.24))))
+        np.testing.assert_allclose(T[i * n:(i + 1) * n], expected[0], rtol=0, atol=1e-12, err_msg=profile.name)
+        np.testing.assert_allclose(T_att[i * n:(i + 1) * n], expected[1], rtol=0, atol=1e-12, err_msg=profile.name)
 
 
 _SHARDED_PROBE = """

@@ -39,6 +39,9 @@ DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-p
 # µm: a layer much thinner than this is transparent (the neutron's evanescent depth,
 # ~ lambda / (4 pi theta_c), is ~0.01 µm); see ``_vanishing``
 TUNNEL_UM = 0.02
+# A CPU evaluates a group's profiles in chunks of kernel arrays at most this large (elements):
+# ``_profiles_per_chunk``
+_CPU_CHUNK_ELEMENTS = 2**15
 
 
 class ModelParams(eqx.Module):
@@ -138,12 +141,12 @@ class ForwardModel(eqx.Module):
         out = []
         for group in self.groups:
             index = np.asarray(group.index)
-            per_profile = jax.vmap(_profile, in_axes=(None, None, None, 0, 0, 0, 0, 0))
-            T_g, T_att_g = per_profile(group, self, params, params.distance_mm[index],
-                                       params.shift_um[index], group.first_edge_um,
-                                       (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
-                                       (group.step_wavelength_A, group.step_weight,
-                                        group.step_mu_table_per_m))
+            args = (params.distance_mm[index], params.shift_um[index], group.first_edge_um,
+                    (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
+                    (group.step_wavelength_A, group.step_weight, group.step_mu_table_per_m))
+            n_sides = 2 * (len(self.interfaces) + 2 * len(self.thin))
+            T_g, T_att_g = _over_profiles(lambda a: _profile(group, self, params, *a), args,
+                                          _profiles_per_chunk(group, n_sides))
             blur_and_bin = jax.vmap(lambda values: _blur_and_bin(group, values))  # one op for all rows
             out.append((blur_and_bin(T_g), blur_and_bin(T_att_g)))
         return tuple(out)
@@ -440,6 +443,37 @@ def _tilt_quantiles(n_strata: int, n_lam: int) -> np.ndarray:
     probability = (np.arange(n_strata)[:, None] + fractions[None, :]) / n_strata
     tilts = np.vectorize(statistics.NormalDist().inv_cdf)(probability)
     return tilts / np.sqrt(np.mean(tilts**2))
+
+
+def _profiles_per_chunk(group: ProfileGroup, n_sides: int) -> int:
+    """How many of a group's profiles are evaluated at once (vmap), the rest in turn.
+
+    On an accelerator all of them. On a CPU as many as keep a chunk's kernel arrays (sides x
+    window edges x wavelength nodes x depth nodes) within ``_CPU_CHUNK_ELEMENTS``: larger
+    buffers are mapped and zeroed afresh by the C allocator on every call (the joint fit of
+    10 BOA distances and 4 ICON lines: 5.9 M page faults and 10.8 s of solving with its far
+    distances vmapped, 0.2 M and 5.2-6.6 s in turn).
+    """
+    n = len(group.index)
+    if jax.default_backend() != "cpu":
+        return n
+    per_profile = n_sides * (2 * group.window + 1) * group.wavelength_A.shape[1] * len(group.z_nodes)
+    return max(1, min(n, _CPU_CHUNK_ELEMENTS // max(per_profile, 1)))
+
+
+def _over_profiles(one, args, chunk: int):
+    """``one`` (one profile's args -> (T, T_att)) over the leading axis of args, ``chunk``
+    profiles at a time: a scan over chunks of a vmap, one traced body whatever the count.
+    The profiles are padded with copies of the last to whole chunks, their results dropped."""
+    n = jax.tree_util.tree_leaves(args)[0].shape[0]
+    if chunk >= n:
+        return jax.vmap(one)(args)
+    n_chunks = -(-n // chunk)
+    chunk = -(-n // n_chunks)  # the fewest padded profiles for that many chunks
+    take = np.minimum(np.arange(n_chunks * chunk), n - 1)
+    padded = jax.tree_util.tree_map(lambda x: x[take], args)
+    out = jax.lax.map(one, padded, batch_size=None if chunk == 1 else chunk)
+    return jax.tree_util.tree_map(lambda x: x[:n], out)
 
 
 def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, distance_mm, shift_um,
