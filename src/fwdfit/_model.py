@@ -86,7 +86,8 @@ class Interface(eqx.Module):
 
 
 class ProfileGroup(eqx.Module):
-    """Profiles sharing one static plan (grid, windows, quadrature), batched with vmap.
+    """Profiles sharing one static plan (grid, windows, quadrature), batched with vmap
+    (on a CPU in chunks, ``_profiles_per_chunk``).
 
     The grid is each profile's pixels, split into ``n_sub`` sub-bins of
     ``bin_um`` and padded by ``n_pad`` sub-bins per side for the detector blur.
