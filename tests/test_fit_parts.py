@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -297,6 +298,29 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
         assert stored[0].stat().st_size > 1000
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_changed_code_does_not_load_programs_another_code_stored(tmp_path):
+    """The stored programs are keyed by fwdfit's source as well as its version: a copy of
+    the package with one line added to the model (a checkout between releases) compiles
+    and stores a program of its own instead of loading the one the installed code stored;
+    the installed code, run again, loads its own (nothing new stored)."""
+    path = _open_beam_line_scene(tmp_path)
+    installed = Path(fwdfit.__file__).parent
+    changed = tmp_path / "changed" / "fwdfit"
+    shutil.copytree(installed, changed, ignore=shutil.ignore_patterns("__pycache__"))
+    model_source = changed / "_model.py"
+    model_source.write_text(model_source.read_text() + "\n# a changed line\n")
+    probe = ("import sys, jax; jax.config.update('jax_enable_x64', True); import fwdfit; "
+             "fwdfit.enable_compilation_cache(sys.argv[2]); fwdfit.Fitter(sys.argv[1])")
+    stored = tmp_path / "cache" / "fwdfit-programs"
+    counts = []
+    for source in (installed.parent, changed.parent, installed.parent):
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(source), os.environ.get("PYTHONPATH", "")])}
+        subprocess.run([sys.executable, "-c", probe, str(path), str(tmp_path / "cache")], env=env, check=True,
+                       cwd=tmp_path)
+        counts.append(len(list(stored.glob("*.xla"))))
+    assert counts == [1, 2, 2]
 
 
 def test_programs_per_group_predict_the_model_in_scene_order():

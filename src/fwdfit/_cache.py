@@ -5,7 +5,7 @@ there; JAX's persistent compilation cache, switched on here, keeps the others).
 ``FWDFIT_CACHE_DIR`` names the folder (default: ``$XDG_CACHE_HOME/fwdfit``, else
 ``~/.cache/fwdfit``); ``FWDFIT_CACHE_DIR=off`` (or an empty value) turns the cache off.
 The cache is keyed by the compiled program, so data, starts and values never go stale
-in it; a changed fwdfit or JAX version simply compiles anew.
+in it; a changed fwdfit (version or source) or JAX version simply compiles anew.
 """
 
 from __future__ import annotations

@@ -166,13 +166,24 @@ class Predictor:
 
 
 def _program_key(leaves, example, plan: str) -> str:
-    """The program's key: plan (text that, with the argument shapes and the versions,
-    identifies the program), the shapes and dtypes, the versions, the backend and the host CPU."""
+    """The program's key: plan (text that, with the argument shapes and the code,
+    identifies the program), the shapes and dtypes, fwdfit's source and the versions,
+    the backend and the host CPU."""
     from . import __version__
 
     shapes = ";".join(f"{x.shape}{x.dtype}" for x in [*leaves, example])
-    return hashlib.sha256("|".join([__version__, jax.__version__, jax.default_backend(), _host_cpu(), plan,
-                                    shapes]).encode()).hexdigest()[:32]
+    return hashlib.sha256("|".join([__version__, _source_digest(), jax.__version__, jax.default_backend(),
+                                    _host_cpu(), plan, shapes]).encode()).hexdigest()[:32]
+
+
+@functools.cache
+def _source_digest() -> str:
+    """SHA-256 of fwdfit's Python sources (~2 ms): a checkout between releases, with the
+    version unchanged, must not load programs that other code compiled."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
 
 
 @functools.cache
