@@ -21,6 +21,7 @@ fitting; float32 agrees to ~1e-4 in T.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import statistics
 
 import equinox as eqx
@@ -39,8 +40,8 @@ DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-p
 # µm: a layer much thinner than this is transparent (the neutron's evanescent depth,
 # ~ lambda / (4 pi theta_c), is ~0.01 µm); see ``_vanishing``
 TUNNEL_UM = 0.02
-# A CPU evaluates a group's profiles in chunks of kernel arrays at most this large (elements):
-# ``_profiles_per_chunk``
+# A CPU evaluates a group's profiles and a profile's crossing sides in chunks of kernel arrays
+# at most this large (elements): ``_per_chunk``
 _CPU_CHUNK_ELEMENTS = 2**15
 
 
@@ -87,7 +88,7 @@ class Interface(eqx.Module):
 
 class ProfileGroup(eqx.Module):
     """Profiles sharing one static plan (grid, windows, quadrature), batched with vmap
-    (on a CPU in chunks, ``_profiles_per_chunk``).
+    (on a CPU in chunks, ``_per_chunk``).
 
     The grid is each profile's pixels, split into ``n_sub`` sub-bins of
     ``bin_um`` and padded by ``n_pad`` sub-bins per side for the detector blur.
@@ -146,8 +147,8 @@ class ForwardModel(eqx.Module):
                     (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
                     (group.step_wavelength_A, group.step_weight, group.step_mu_table_per_m))
             n_sides = 2 * (len(self.interfaces) + 2 * len(self.thin))
-            T_g, T_att_g = _over_profiles(lambda a: _profile(group, self, params, *a), args,
-                                          _profiles_per_chunk(group, n_sides))
+            T_g, T_att_g = _in_chunks(lambda a: _profile(group, self, params, *a), args,
+                                      _per_chunk(len(index), n_sides * _side_elements(group)))
             blur_and_bin = jax.vmap(lambda values: _blur_and_bin(group, values))  # one op for all rows
             out.append((blur_and_bin(T_g), blur_and_bin(T_att_g)))
         return tuple(out)
@@ -446,31 +447,37 @@ def _tilt_quantiles(n_strata: int, n_lam: int) -> np.ndarray:
     return tilts / np.sqrt(np.mean(tilts**2))
 
 
-def _profiles_per_chunk(group: ProfileGroup, n_sides: int) -> int:
-    """How many of a group's profiles are evaluated at once (vmap), the rest in turn.
+def _side_elements(group: ProfileGroup) -> int:
+    """Kernel array elements of one crossing side: window edges x wavelength nodes x depth
+    nodes x strata of a rough face's normal tilt."""
+    return (2 * group.window + 1) * group.wavelength_A.shape[1] * len(group.z_nodes) * max(1, group.rough_strata)
 
-    On an accelerator all of them. On a CPU as many as keep a chunk's kernel arrays (sides x
-    window edges x wavelength nodes x depth nodes) within ``_CPU_CHUNK_ELEMENTS``: larger
-    buffers are mapped and zeroed afresh by the C allocator on every call (the joint fit of
-    10 BOA distances and 4 ICON lines: 5.9 M page faults and 10.8 s of solving with its far
-    distances vmapped, 0.2 M and 5.2-6.6 s in turn).
+
+def _per_chunk(n: int, elements_each: int) -> int:
+    """How many of n items (a group's profiles, a profile's crossing sides) of
+    ``elements_each`` kernel array elements are evaluated at once (vmap), the rest in turn.
+
+    On an accelerator all of them. On a CPU as many as keep a chunk within
+    ``_CPU_CHUNK_ELEMENTS``: larger buffers are mapped and zeroed afresh by the C allocator
+    on every call (the joint fit of 10 BOA distances and 4 ICON lines: 5.9 M page faults and
+    10.8 s of solving with its far distances vmapped, 0.2 M and 5.2-6.6 s in turn; the
+    five-layer oxide with 2 mrad rough faces: 1.6 GB of buffers an evaluation with its 12
+    sides vmapped).
     """
-    n = len(group.index)
     if jax.default_backend() != "cpu":
         return n
-    per_profile = n_sides * (2 * group.window + 1) * group.wavelength_A.shape[1] * len(group.z_nodes)
-    return max(1, min(n, _CPU_CHUNK_ELEMENTS // max(per_profile, 1)))
+    return max(1, min(n, _CPU_CHUNK_ELEMENTS // max(elements_each, 1)))
 
 
-def _over_profiles(one, args, chunk: int):
-    """``one`` (one profile's args -> (T, T_att)) over the leading axis of args, ``chunk``
-    profiles at a time: a scan over chunks of a vmap, one traced body whatever the count.
-    The profiles are padded with copies of the last to whole chunks, their results dropped."""
+def _in_chunks(one, args, chunk: int):
+    """``one`` (one item's args -> arrays) over the leading axis of args, ``chunk`` items
+    at a time: a scan over chunks of a vmap, one traced body whatever the count. The items
+    are padded with copies of the last to whole chunks, their results dropped."""
     n = jax.tree_util.tree_leaves(args)[0].shape[0]
     if chunk >= n:
         return jax.vmap(one)(args)
     n_chunks = -(-n // chunk)
-    chunk = -(-n // n_chunks)  # the fewest padded profiles for that many chunks
+    chunk = -(-n // n_chunks)  # the fewest padded items for that many chunks
     take = np.minimum(np.arange(n_chunks * chunk), n - 1)
     padded = jax.tree_util.tree_map(lambda x: x[take], args)
     out = jax.lax.map(one, padded, batch_size=None if chunk == 1 else chunk)
@@ -516,9 +523,12 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
             sign, distance_um)
         sides = (sign * b, sign * slope, z_mid[position], mu_before.T, mu_after.T,
                  2.0 * (sld_after - sld_before)[:, None] * delta_per_sld, slope_rms[position])
-        kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, None, 0))
-        dT, dT_att = _windowed(group, first_edge_um, T.shape[0], sign, landing_um, lambda window_edges: kernel(
-            group, sides, distance_um, wavelength_weight, depth_um, refracting, rough, window_edges))
+        one_side = functools.partial(_crossing_kernel, group, distance_um=distance_um,
+                                     wavelength_weight=wavelength_weight, depth_um=depth_um,
+                                     refracting=refracting, rough=rough)
+        chunk = _per_chunk(len(position), _side_elements(group))
+        dT, dT_att = _windowed(group, first_edge_um, T.shape[0], sign, landing_um, lambda window_edges: _in_chunks(
+            lambda a: one_side(a[0], edges_um=a[1]), (sides, window_edges), chunk))
         T, T_att = T + dT, T_att + dT_att
     return T, T_att
 
