@@ -107,3 +107,17 @@ def test_missing_scene_file_is_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "nowhere.toml" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_python_m_fwdfit_is_the_command(tmp_path):
+    """``python -m fwdfit`` runs the same command line: its exit status and one-line errors."""
+    import subprocess
+    import sys
+
+    scene = tmp_path / "nowhere.toml"
+    done = subprocess.run([sys.executable, "-m", "fwdfit", "simulate", str(scene), "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and len(lines) == 1
+    assert lines[0].startswith("fwdfit: error: ") and "nowhere.toml" in lines[0]
+    assert not (tmp_path / "out").exists()

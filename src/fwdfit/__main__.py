@@ -1,0 +1,7 @@
+"""``python -m fwdfit``: the ``fwdfit`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())
