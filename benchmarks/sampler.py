@@ -11,9 +11,9 @@ Cases (each: fit, then ``fwdfit.sample`` from the fit's optimum):
   the tracer's own error in quadrature, as tests/test_fit_starts.py makes it), ten free
   values. Reported: the posterior correlation of the two oxide SLDs against the
   covariance's, and the posterior sd / fit error of every parameter.
-- ``coverage``: ``--noise-draws`` (default 20) noise draws of the Al example's truth (``fwdfit.simulate`` + 0.5 %
-  noise); the share of draws whose 16-84 % credible interval holds the truth (goal
-  68 ± 10 %). One ``Fitter``, so the model and gradient compile once.
+- ``coverage``: ``--noise-draws`` (default 20) noise draws of the Al example's truth
+  (``fwdfit.simulate`` + 0.5 % noise); the share of draws whose 16-84 % credible interval
+  holds the truth (goal 68 ± 10 %). One ``Fitter``, so the model and gradient compile once.
 
     python benchmarks/sampler.py [al] [oxide] [coverage] [--draws N] [--warmup W]
         [--chains C] [--accuracy A] [--quick]

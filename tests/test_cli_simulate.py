@@ -6,6 +6,8 @@ offending key, no traceback, and no output folder.
 """
 
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -111,9 +113,6 @@ def test_missing_scene_file_is_one_line_error(tmp_path, capsys):
 
 def test_python_m_fwdfit_is_the_command(tmp_path):
     """``python -m fwdfit`` runs the same command line: its exit status and one-line errors."""
-    import subprocess
-    import sys
-
     scene = tmp_path / "nowhere.toml"
     done = subprocess.run([sys.executable, "-m", "fwdfit", "simulate", str(scene), "--out", str(tmp_path / "out")],
                           capture_output=True, text=True)

@@ -141,12 +141,12 @@ class ForwardModel(eqx.Module):
         """Pixel-averaged (T, T_att) per group, each (n_group_profiles, n_pixel), rows in
         ``group.index`` order: the traced graph does not grow with the profiles of a group."""
         out = []
+        n_sides = 2 * (len(self.interfaces) + 2 * len(self.thin))  # crossing sides of a profile, at most
         for group in self.groups:
             index = np.asarray(group.index)
             args = (params.distance_mm[index], params.shift_um[index], group.first_edge_um,
                     (group.wavelength_A, group.wavelength_weight, group.mu_table_per_m),
                     (group.step_wavelength_A, group.step_weight, group.step_mu_table_per_m))
-            n_sides = 2 * (len(self.interfaces) + 2 * len(self.thin))
             T_g, T_att_g = _in_chunks(lambda a: _profile(group, self, params, *a), args,
                                       _per_chunk(len(index), n_sides * _side_elements(group)))
             blur_and_bin = jax.vmap(lambda values: _blur_and_bin(group, values))  # one op for all rows
@@ -478,9 +478,10 @@ def _in_chunks(one, args, chunk: int):
         return jax.vmap(one)(args)
     n_chunks = -(-n // chunk)
     chunk = -(-n // n_chunks)  # the fewest padded items for that many chunks
-    take = np.minimum(np.arange(n_chunks * chunk), n - 1)
-    padded = jax.tree_util.tree_map(lambda x: x[take], args)
-    out = jax.lax.map(one, padded, batch_size=None if chunk == 1 else chunk)
+    if n_chunks * chunk > n:
+        take = np.minimum(np.arange(n_chunks * chunk), n - 1)
+        args = jax.tree_util.tree_map(lambda x: x[take], args)
+    out = jax.lax.map(one, args, batch_size=None if chunk == 1 else chunk)
     return jax.tree_util.tree_map(lambda x: x[:n], out)
 
 
