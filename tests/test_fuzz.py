@@ -270,8 +270,9 @@ def check_outcome(case: tuple[dict, dict[str, str]]) -> None:
             status = main(["simulate", str(scene), "--out", str(out)])
         # A warning would be printed on the terminal: it counts as a line.
         lines = stderr.getvalue().splitlines() + [f"warning: {w.message}" for w in caught]
-        if status == 0:
-            assert lines == [], lines
+        if status == 0:  # only the note of a thin layer that the model leaves uncoupled
+            assert all(line.startswith("warning: layer ") and "modelled independently" in line
+                       for line in lines), lines
             names = [profile["name"] for profile in document["profiles"]]
             assert sorted(os.listdir(out)) == sorted(f"{name}.csv" for name in names)
             for name in names:

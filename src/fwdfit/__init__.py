@@ -7,6 +7,7 @@ writes one) -> ``build_model`` + ``initial_params`` ->
 
 from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._errors import FwdfitError as FwdfitError
+from ._errors import ModelWarning as ModelWarning
 from ._fit import FitResult as FitResult
 from ._fit import FittedProfile as FittedProfile
 from ._fit import Fitter as Fitter

@@ -13,7 +13,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from ._errors import FwdfitError
+from ._errors import FwdfitError, ModelWarning
 from ._limits import domain_problem
 from ._paganin_scene import MODES as PAGANIN_MODES
 from ._profile_cli import add_profile_parser
@@ -113,6 +113,7 @@ def _run_fit(args) -> int:
         enable_compilation_cache()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the notes are printed with the table below
+        warnings.simplefilter("default", ModelWarning)  # a model less exact than asked: said at once
         fitter = Fitter(scene, accuracy=args.accuracy, n_starts=args.starts, max_steps=args.max_steps,
                         progress=not args.quiet)
         result = fitter(seed=args.seed)
@@ -149,6 +150,7 @@ def _run_fit_image(args) -> int:
         enable_compilation_cache()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the notes are printed with the table below
+        warnings.simplefilter("default", ModelWarning)  # a model less exact than asked: said at once
         result = fit_image(scene, accuracy=args.accuracy, progress=not args.quiet)
     write_image_fit(result, Path(args.out))
     shared = result.shared
@@ -310,12 +312,19 @@ def _fit_command(commands, name: str, scene_help: str, handler, **texts) -> argp
     return command
 
 
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one ``warning:`` line on stderr, without the source line."""
+    print(f"warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status: 0, 1 bad input, 130 interrupted (fit: more)."""
     try:
         args = _parser().parse_args(argv)
         _quiet_xla()
-        status = args.handler(args)
+        with warnings.catch_warnings():  # restores the printer
+            warnings.showwarning = _print_warning
+            status = args.handler(args)
     except (FwdfitError, OSError) as error:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"fwdfit: error: {message}", file=sys.stderr)
