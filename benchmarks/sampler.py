@@ -17,7 +17,7 @@ Cases (each: fit, then ``fwdfit.sample`` from the fit's optimum):
   error does, draw by draw. One ``Fitter``, so the model and gradient compile once.
 
     python benchmarks/sampler.py [al] [oxide] [coverage] [--draws N] [--warmup W]
-        [--chains C] [--accuracy A] [--quick]
+        [--chains C] [--accuracy A] [--noise-draws N] [--resume] [--quick]
 
 Writes ``benchmarks/results/sampler.json``; costs on 2 CPU cores are in the file.
 """
@@ -86,9 +86,11 @@ def oxide_scene(seed: int = 0):
     return dataclasses.replace(scene, profiles=tuple(profiles), fit=fwdfit.FitSpec(OXIDE_VARY, {}))
 
 
-def coverage(args) -> dict:
+def coverage(args, kept: dict, save) -> dict:
     """Share of noise draws whose 16-84 % credible interval holds the truth, per parameter
-    (``args.noise_draws`` draws; the first ones are the same whatever the count)."""
+    (``args.noise_draws`` draws; the first ones are the same whatever the count). kept: an
+    earlier run's record of the same settings, whose draws are kept (``--resume``); save:
+    called with the record after every draw, so that a stopped run can be resumed."""
     n_draws = args.noise_draws
     scene = fwdfit.load_scene(AL_SCENE)
     truth_scene = dataclasses.replace(scene, sample=dataclasses.replace(
@@ -96,9 +98,14 @@ def coverage(args) -> dict:
         layers=(dataclasses.replace(scene.sample.layers[0], thickness_um=AL_TRUTH["layers.Al.thickness_um"]),)))
     truth_T = [p.T for p in fwdfit.simulate(truth_scene, args.accuracy)]
     fitter = fwdfit.Fitter(scene, accuracy=args.accuracy)
-    hits, fit_hits, rng, begin = [], [], np.random.default_rng(1), time.perf_counter()
+    hits, fit_hits = list(kept.get("hits", []))[:n_draws], list(kept.get("fit_hits", []))[:n_draws]
+    rng, begin = np.random.default_rng(1), time.perf_counter()
+    share = lambda h: {n: float(np.mean([d[n] for d in h])) for n in AL_TRUTH}
+    record = kept
     for k in range(n_draws):
-        T = [t + rng.normal(0.0, NOISE, t.shape) for t in truth_T]
+        T = [t + rng.normal(0.0, NOISE, t.shape) for t in truth_T]  # drawn for kept draws too
+        if k < len(hits):
+            continue
         result = fitter(T, [np.full_like(t, NOISE) for t in T])
         posterior = fwdfit.sample(scene, args.draws, chains=args.chains, warmup=args.warmup, seed=k,
                                   fitter=fitter, result=result, T=T, T_err=[np.full_like(t, NOISE) for t in T])
@@ -109,9 +116,10 @@ def coverage(args) -> dict:
         fit_hits.append({n: bool(abs(v - AL_TRUTH[n]) <= e) for n, v, e in zip(result.names, result.values,
                                                                                result.errors) if n in AL_TRUTH})
         print(k, hits[-1], f"{time.perf_counter() - begin:.0f} s", flush=True)
-    share = lambda h: {n: float(np.mean([d[n] for d in h])) for n in AL_TRUTH}
-    return (share(hits) | {"draws": n_draws, "pooled": float(np.mean([v for h in hits for v in h.values()])),
-                           "fit_errors": share(fit_hits), "hits": hits, "fit_hits": fit_hits})
+        record = (share(hits) | {"draws": len(hits), "pooled": float(np.mean([v for h in hits for v in h.values()])),
+                                 "fit_errors": share(fit_hits), "hits": hits, "fit_hits": fit_hits})
+        save(record)
+    return record
 
 
 def main() -> None:
@@ -122,6 +130,8 @@ def main() -> None:
     parser.add_argument("--chains", type=int, default=4)
     parser.add_argument("--accuracy", type=float, default=None)
     parser.add_argument("--noise-draws", type=int, default=20, help="coverage: noise realisations")
+    parser.add_argument("--resume", action="store_true",
+                        help="coverage: keep the draws of an earlier run with the same settings")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: the Al example only, 2 chains x 100 draws, accuracy 0.01")
     args = parser.parse_args()
@@ -137,7 +147,16 @@ def main() -> None:
         elif case == "oxide":
             results[case] = _run(oxide_scene(), args)
         else:
-            results[case] = coverage(args)
+            settings = {k: v for k, v in vars(args).items() if k not in ("cases", "noise_draws", "resume")}
+            earlier = results.get(case, {})
+            kept = earlier if args.resume and earlier.get("settings") == settings else {}
+
+            def save(record, case=case, settings=settings):
+                results[case] = record | {"settings": settings}
+                results["machine"] = machine_record()
+                path.write_text(json.dumps(results, indent=2) + "\n")
+            save(coverage(args, kept, save))
+            continue
         results[case]["settings"] = vars(args) | {"cases": None}
         results["machine"] = machine_record()
         path.write_text(json.dumps(results, indent=2) + "\n")
