@@ -15,8 +15,10 @@ Cases (each: fit, then ``fwdfit.sample`` from the fit's optimum):
   (``fwdfit.simulate`` + 0.5 % noise); the share of draws whose 16-84 % credible interval
   holds the truth (goal 68 ± 10 %), and for comparison the share whose least-squares value ± its
   error does, draw by draw. One ``Fitter``, so the model and gradient compile once.
+- ``fit_coverage``: the same noise draws, the least-squares errors alone (no sampling), so that
+  many draws (``--noise-draws 200``, a few minutes) show what share the first 20 or 40 give.
 
-    python benchmarks/sampler.py [al] [oxide] [coverage] [--draws N] [--warmup W]
+    python benchmarks/sampler.py [al] [oxide] [coverage] [fit_coverage] [--draws N] [--warmup W]
         [--chains C] [--accuracy A] [--noise-draws N] [--resume] [--quick]
 
 Writes ``benchmarks/results/sampler.json``; costs on 2 CPU cores are in the file.
@@ -86,11 +88,12 @@ def oxide_scene(seed: int = 0):
     return dataclasses.replace(scene, profiles=tuple(profiles), fit=fwdfit.FitSpec(OXIDE_VARY, {}))
 
 
-def coverage(args, kept: dict, save) -> dict:
+def coverage(args, kept: dict, save, sample: bool = True) -> dict:
     """Share of noise draws whose 16-84 % credible interval holds the truth, per parameter
     (``args.noise_draws`` draws; the first ones are the same whatever the count). kept: an
     earlier run's record of the same settings, whose draws are kept (``--resume``); save:
-    called with the record after every draw, so that a stopped run can be resumed."""
+    called with the record after every draw, so that a stopped run can be resumed. sample:
+    False for the least-squares errors alone (``fit_coverage``: many draws in minutes)."""
     n_draws = args.noise_draws
     scene = fwdfit.load_scene(AL_SCENE)
     truth_scene = dataclasses.replace(scene, sample=dataclasses.replace(
@@ -104,27 +107,30 @@ def coverage(args, kept: dict, save) -> dict:
     record = kept
     for k in range(n_draws):
         T = [t + rng.normal(0.0, NOISE, t.shape) for t in truth_T]  # drawn for kept draws too
-        if k < len(hits):
+        if k < len(fit_hits):
             continue
         result = fitter(T, [np.full_like(t, NOISE) for t in T])
-        posterior = fwdfit.sample(scene, args.draws, chains=args.chains, warmup=args.warmup, seed=k,
-                                  fitter=fitter, result=result, T=T, T_err=[np.full_like(t, NOISE) for t in T])
-        flat = posterior.draws.reshape(-1, len(posterior.names))
-        low, high = np.percentile(flat, [16, 84], axis=0)
-        hits.append({n: bool(low[j] <= AL_TRUTH[n] <= high[j]) for j, n in enumerate(posterior.names)
-                     if n in AL_TRUTH})
+        if sample:
+            posterior = fwdfit.sample(scene, args.draws, chains=args.chains, warmup=args.warmup, seed=k,
+                                      fitter=fitter, result=result, T=T, T_err=[np.full_like(t, NOISE) for t in T])
+            flat = posterior.draws.reshape(-1, len(posterior.names))
+            low, high = np.percentile(flat, [16, 84], axis=0)
+            hits.append({n: bool(low[j] <= AL_TRUTH[n] <= high[j]) for j, n in enumerate(posterior.names)
+                         if n in AL_TRUTH})
         fit_hits.append({n: bool(abs(v - AL_TRUTH[n]) <= e) for n, v, e in zip(result.names, result.values,
                                                                                result.errors) if n in AL_TRUTH})
-        print(k, hits[-1], f"{time.perf_counter() - begin:.0f} s", flush=True)
-        record = (share(hits) | {"draws": len(hits), "pooled": float(np.mean([v for h in hits for v in h.values()])),
-                                 "fit_errors": share(fit_hits), "hits": hits, "fit_hits": fit_hits})
+        print(k, (hits or fit_hits)[-1], f"{time.perf_counter() - begin:.0f} s", flush=True)
+        record = {"draws": len(fit_hits), "fit_errors": share(fit_hits), "fit_hits": fit_hits}
+        if sample:
+            record |= share(hits) | {"pooled": float(np.mean([v for h in hits for v in h.values()])), "hits": hits}
         save(record)
     return record
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("cases", nargs="*", default=["al", "oxide"], choices=["al", "oxide", "coverage"])
+    parser.add_argument("cases", nargs="*", default=["al", "oxide"],
+                        choices=["al", "oxide", "coverage", "fit_coverage"])
     parser.add_argument("--draws", type=int, default=500)
     parser.add_argument("--warmup", type=int, default=300)
     parser.add_argument("--chains", type=int, default=4)
@@ -155,7 +161,7 @@ def main() -> None:
                 results[case] = record | {"settings": settings}
                 results["machine"] = machine_record()
                 path.write_text(json.dumps(results, indent=2) + "\n")
-            save(coverage(args, kept, save))
+            save(coverage(args, kept, save, sample=case == "coverage"))
             continue
         results[case]["settings"] = vars(args) | {"cases": None}
         results["machine"] = machine_record()

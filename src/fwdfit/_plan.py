@@ -63,10 +63,13 @@ _DEPTH_NODES_PER_LOG = 0.5
 # Rough faces: equiprobable strata of the normal's tilt (``_model._tilt_quantiles``), one per
 # this much RMS slope at accuracy 1e-3 and a lever of _ROUGH_LEVER_UM, more as the square root
 # of longer levers (the tilts move the landing rays by tilt x lever; against the tracer, 2 mrad
-# on a 4.6 Å line: 4 strata at 1.1 mm, 8 at 10 mm), the largest tilt in RMS slopes that the
+# on a 4.6 Å line: 4 strata at 1.1 mm, 8 at 10 mm), at least _ROUGH_MIN_STRATA (one stratum left
+# the five-layer oxide with every face at 0.5 mrad 0.0019 RMS off at 1.1 mm, two 0.0006), the
+# largest tilt in RMS slopes that the
 # kernel windows cover, and the head-room of a free roughness over its start (at least
 # _ROUGH_FREE_MIN_MRAD).
 _ROUGH_MRAD_PER_STRATUM = 0.6
+_ROUGH_MIN_STRATA = 2
 _ROUGH_LEVER_UM = 2100.0
 _ROUGH_REACH = 3.0
 _ROUGH_FREE_MARGIN = 1.5
@@ -459,7 +462,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         strata = 0
         if any_rough:
             lever = 1e3 * (profile.distance_mm + 0.5 * scene.sample.depth_mm) / _ROUGH_LEVER_UM
-            strata = math.ceil(rough_mrad / _ROUGH_MRAD_PER_STRATUM * math.sqrt(max(lever, 1.0) * 1e-3 / accuracy))
+            strata = max(_ROUGH_MIN_STRATA, math.ceil(rough_mrad / _ROUGH_MRAD_PER_STRATUM
+                                                      * math.sqrt(max(lever, 1.0) * 1e-3 / accuracy)))
         key = _PlanKey(profile.instrument, n_edges, n_sub, n_pad, strata, window)
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
