@@ -348,8 +348,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     k = 2 (delta_after - delta_before) (n_lam,) and the RMS slope of the face's normal
     (rad). The straight and the deflected terms are summed over depth nodes aligned with
     their kinks (``_kink_aligned_depths``); with Fresnel reflection the transfer shares the
-    deflected terms' nodes, aligned with the kinks of both (``fresnel_kinks``). The kernel replaces the crossing rays' step assignment by
-    their true path in its own wavelength quadrature, so that an interface without
+    deflected terms' nodes, aligned with the kinks of both (``fresnel_kinks``). The kernel
+    replaces the crossing rays' step assignment by their true path in its own wavelength
+    quadrature, so that an interface without
     contrast adds exactly nothing. A rough face's deflected rays are averaged over its
     normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
     leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass

@@ -51,7 +51,7 @@ _THIN_ANGLE_NODES = 3  # Gauss nodes of the attenuation inside a coupled thin la
 # The thin kernels' integrands have more kinks than the depth cuts catch exactly: twice the depth
 # nodes per piece (measured: RMS 0.0027 -> 0.0013 for a 2 µm skin at 10 mm, 0.24°).
 _THIN_DEPTH_FACTOR = 2
-# The coupled kernels carry intensity that moves with the critical angle (oc lambda), such as the
+# The coupled kernels carry intensity that moves with the critical angle (~ lambda), such as the
 # guided channel of Ti inside Al: a white beam gets half as many wavelength nodes again (measured:
 # 4 µm Ti in Al, BOA 1.1 mm, RMS 0.0020 -> 0.0006 against the tracer, whose noise is 0.0006; lines
 # need no more).
@@ -65,9 +65,8 @@ _DEPTH_NODES_PER_LOG = 0.5
 # of longer levers (the tilts move the landing rays by tilt x lever; against the tracer, 2 mrad
 # on a 4.6 Å line: 4 strata at 1.1 mm, 8 at 10 mm), at least _ROUGH_MIN_STRATA (one stratum left
 # the five-layer oxide with every face at 0.5 mrad 0.0019 RMS off at 1.1 mm, two 0.0006), the
-# largest tilt in RMS slopes that the
-# kernel windows cover, and the head-room of a free roughness over its start (at least
-# _ROUGH_FREE_MIN_MRAD).
+# largest tilt in RMS slopes that the kernel windows cover, and the head-room of a free
+# roughness over its start (at least _ROUGH_FREE_MIN_MRAD).
 _ROUGH_MRAD_PER_STRATUM = 0.6
 _ROUGH_MIN_STRATA = 2
 _ROUGH_LEVER_UM = 2100.0
