@@ -145,16 +145,13 @@ def deflected_kinks(mass: AngularMass, k, right_of_interface):
 
 
 def fresnel_kinks(mass: AngularMass, k, right_of_interface):
-    """Grazing angles at the edge where ``deflected_cumulative`` or ``fresnel_transfer`` has
-    kinks, so that both are integrated on one set of depth nodes.
+    """Grazing angles at the edge where ``fresnel_transfer`` has kinks.
 
-    Right of the interface's projection the refracted rays' kinks (``deflected_kinks``; the
-    third repeats the second); left of it the reflected rays land, from the fan's start, the
-    critical angle and (partially reflected) from the fan's end.
+    As ``deflected_kinks`` right of the interface's projection; left of it the
+    partially reflected rays land, from the critical angle and the fan's end.
     """
     critical = _critical(mass, k)
-    first, second = _refracted_kinks(mass, k, critical)
-    return _sided_kinks((first, second, second), (-mass.a_min, -critical, -mass.a_max), right_of_interface)
+    return _sided_kinks(_refracted_kinks(mass, k, critical), (-critical, -mass.a_max), right_of_interface)
 
 
 def _refracted_kinks(mass: AngularMass, k, critical):

@@ -294,12 +294,11 @@ def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um,
 
 
 def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup, extra_cuts=()):
-    """Depth nodes and weights (..., pieces n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
+    """Depth nodes and weights (..., DEPTH_PIECES n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
 
     The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
-    the cumulative (``_kernel``) has a kink in z where that angle meets one of the
-    ``kinks(mass)`` angles (two, or three for ``fresnel_kinks``), which depend on z only
-    through the aperture's view.
+    the cumulative (``_kernel``) has a kink in z where that angle meets one of the two
+    ``kinks(mass)`` angles, which depend on z only through the aperture's view.
     Splitting there, and at the mid-plane z = 0 where the step assignment jumps,
     keeps every piece smooth, so the kernel is smooth in the parameters rather than
     piecewise linear. aim_um: (..., e) µm, one value per edge. extra_cuts: more depths
@@ -312,28 +311,24 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
 
     # The kink angles from the mid-plane's view, then once more from the depths found:
     # the view changes by ~z / L, so one step leaves the cuts ~1e-4 µm off the kinks.
-    depths = [depth_at(angle) for angle in kinks(mass_at(jnp.zeros_like(aim_um[..., :1])))]
-    refined = kinks(mass_at(jnp.stack(depths)))
-    depths = [depth_at(angle[i]) for i, angle in enumerate(refined)]
-    if len(depths) == 2 and not extra_cuts:  # sorted without a sort: z_lo <= kinks, 0 <= z_hi
-        first, second = jnp.minimum(*depths), jnp.maximum(*depths)
-        zero = jnp.zeros_like(first)
-        cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, zero),
-                          jnp.clip(zero, first, second), jnp.maximum(second, zero),
-                          jnp.full_like(first, z_hi)], axis=-2)
-    else:
-        inside = depths + [jnp.zeros_like(depths[0])]
-        inside += [jnp.clip(jnp.broadcast_to(c, depths[0].shape), z_lo, z_hi) for c in extra_cuts]
-        ends = [jnp.full_like(depths[0], z_lo), jnp.full_like(depths[0], z_hi)]
-        cuts = jnp.concatenate([ends[0][..., None, :], jnp.sort(jnp.stack(inside, axis=-2), axis=-2),
-                                ends[1][..., None, :]], axis=-2)
+    first, second = (depth_at(angle) for angle in kinks(mass_at(jnp.zeros_like(aim_um[..., :1]))))
+    refined = kinks(mass_at(jnp.stack([first, second])))
+    first, second = depth_at(refined[0][0]), depth_at(refined[1][1])
+    first, second = jnp.minimum(first, second), jnp.maximum(first, second)
+    zero = jnp.zeros_like(first)
+    cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, zero),
+                      jnp.clip(zero, first, second), jnp.maximum(second, zero),
+                      jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, 0 <= z_hi
+    if extra_cuts:
+        more = jnp.stack([jnp.clip(jnp.broadcast_to(c, first.shape), z_lo, z_hi) for c in extra_cuts], axis=-2)
+        cuts = jnp.sort(jnp.concatenate([cuts, more], axis=-2), axis=-2)
     # Gauss-Legendre in the log of the lever (distance - z) on every piece: the grazing
     # angle to an edge goes like 1 / lever, which is far from polynomial in z at short
     # distances (the lever runs from distance - depth / 2 to distance + depth / 2).
     log_lever = jnp.log(distance_um - cuts)
-    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., pieces, 1, e), negative
+    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., DEPTH_PIECES, 1, e), negative
     unit_nodes, unit_weights = (np.asarray(v)[:, None] for v in (group.z_nodes, group.z_weights))
-    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., pieces, n, e)
+    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., DEPTH_PIECES, n, e)
     z, dz = distance_um - lever, -lever * length * unit_weights
     shape = aim_um.shape[:-1] + (-1, aim_um.shape[-1])
     return z.reshape(shape), dz.reshape(shape)
@@ -346,11 +341,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
     at z = 0, its slope, its z-centre, mu before and after (n_lam,),
     k = 2 (delta_after - delta_before) (n_lam,) and the RMS slope of the face's normal
-    (rad). The straight and the deflected terms are summed over depth nodes aligned with
-    their kinks (``_kink_aligned_depths``); with Fresnel reflection the transfer shares the
-    deflected terms' nodes, aligned with the kinks of both (``fresnel_kinks``). The kernel
-    replaces the crossing rays' step assignment by their true path in its own wavelength
-    quadrature, so that an interface without
+    (rad). Each term is summed over depth nodes aligned with its own kinks
+    (``_kink_aligned_depths``). The kernel replaces the crossing rays' step assignment by
+    their true path in its own wavelength quadrature, so that an interface without
     contrast adds exactly nothing. A rough face's deflected rays are averaged over its
     normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
     leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
@@ -416,9 +409,8 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
                                                                             wavelength_weight, values)
         return values
 
-    if limits is None:  # with Fresnel reflection, one node set aligned with the kinks of both terms
-        kinks = fresnel_kinks if group.fresnel_nodes else deflected_kinks
-        z, scale, mass, grazing = nodes(shifted(lambda m: kinks(m, k_l, right_of_interface)), aim_l, tilt)
+    if limits is None:
+        z, scale, mass, grazing = nodes(shifted(lambda m: deflected_kinks(m, k_l, right_of_interface)), aim_l, tilt)
         local = grazing if tilt is None else grazing - tilt[..., None]
         refracted, reflected = deflected_cumulative(mass, local, k_l[..., None])
     else:  # reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
@@ -431,7 +423,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     if tilt is not None:  # rays that meet their facet from behind pass straight
         refracted = refracted + mass.behind(grazing)
     deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
-    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam (never with ``restrict``)
+    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks
+        z, scale, mass, grazing = nodes(shifted(lambda m: fresnel_kinks(m, k_l, right_of_interface)), aim_l, tilt)
+        local = grazing if tilt is None else grazing - tilt[..., None]
         lost, gained = fresnel_transfer(mass, local, k_l[..., None], group.fresnel_nodes,
                                         group.fresnel_weights)
         deflected = deflected + summed(jnp.sum((reflected_path * gained - true_path(z) * lost) * scale, axis=-2))
