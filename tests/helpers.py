@@ -375,7 +375,7 @@ def free_layer_parameters(scene) -> list[str]:
             for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")]
 
 
-def skin_scene(thickness_um, free=()):
+def skin_scene(thickness_um, free=(), fresnel=False):
     """An oxide skin (SLD 4.5, mu 100 /m) on 1 mm of Al, ICON 4 Å line, the outer edge at 1.1 mm;
     thickness_um None: the bare Al block on the same instrument and pixels."""
     import fwdfit
@@ -384,4 +384,4 @@ def skin_scene(thickness_um, free=()):
     layers = skin + [al_layer()]
     return make_scene(layers, profiles=[("d01.1mm", 1.1, -530.0, -470.0)],
                       spectrum=fwdfit.GaussianLine(4.0, 0.15), aperture="circular",
-                      aperture_distance_m=5.5, vary=free)
+                      aperture_distance_m=5.5, fresnel=fresnel, vary=free)

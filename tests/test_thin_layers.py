@@ -7,7 +7,6 @@ ICON 4 Å line at 1.1 mm, tilts 0 and 0.24°, default accuracy, float64. A free 
 going to 0 must make the layer vanish smoothly; thick scenes must not change.
 """
 
-import dataclasses
 import warnings
 from pathlib import Path
 
@@ -67,10 +66,8 @@ def test_a_thin_layer_left_independent_is_reported():
     with warnings.catch_warnings():
         warnings.simplefilter("error", fwdfit.ModelWarning)
         assert fwdfit.build_model(scene).thin
-    fresnel = dataclasses.replace(scene, instruments={k: dataclasses.replace(v, fresnel=True)
-                                                      for k, v in scene.instruments.items()})
     with pytest.warns(fwdfit.ModelWarning, match=r"layer 'skin' \(2 µm\).*with Fresnel reflection"):
-        assert fwdfit.build_model(fresnel).thin == ()
+        assert fwdfit.build_model(skin_scene(2.0, fresnel=True)).thin == ()
     two = make_scene([oxide_layer("outer", 1.0, 4.5, 100.0), oxide_layer("inner", 2.0, 3.0, 50.0), al_layer()],
                      profiles=[("p", 1.1, -530.0, -470.0)], spectrum=fwdfit.GaussianLine(4.0, 0.15))
     with pytest.warns(fwdfit.ModelWarning, match="next to another thin layer") as caught:
@@ -79,10 +76,7 @@ def test_a_thin_layer_left_independent_is_reported():
 
 
 def test_the_command_line_prints_the_model_warning_as_one_line(tmp_path, capsys):
-    scene = skin_scene(2.0)
-    scene = dataclasses.replace(scene, instruments={k: dataclasses.replace(v, fresnel=True)
-                                                    for k, v in scene.instruments.items()})
-    path = fwdfit.save_scene(scene, tmp_path / "scene.toml")
+    path = fwdfit.save_scene(skin_scene(2.0, fresnel=True), tmp_path / "scene.toml")
     assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if line]
     assert len(lines) == 1 and lines[0].startswith("warning: layer 'skin'"), lines

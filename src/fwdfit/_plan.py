@@ -280,17 +280,16 @@ def thin_layers(scene: Scene, free: Collection[str], tilt_range_deg: tuple[float
                                            ("a graded medium", graded[a] or graded[b] or graded[c])) if present]
 
     kept = _kept_media(scene, free)
-    thin = [(kept[j - 1], kept[j], kept[j + 1]) for j in range(1, len(kept) - 1)
-            if 0 < layers[kept[j] - 1].thickness_um < drift_um]
-    candidates = sorted((c for c in thin if not missing(*c)),
+    thin = {c: missing(*c) for c in zip(kept, kept[1:], kept[2:])  # in the stack's order
+            if 0 < layers[c[1] - 1].thickness_um < drift_um}
+    candidates = sorted((c for c, gaps in thin.items() if not gaps),
                         key=lambda c: (c[0] == 0 or c[2] == len(layers) + 1, layers[c[1] - 1].thickness_um))
     chosen: list[tuple[int, int, int]] = []
     for candidate in candidates:
         if all(candidate[1] not in (other[0], other[2]) for other in chosen):
             chosen.append(candidate)
-    for a, b, c in thin:
+    for (a, b, c), why in thin.items():
         if (a, b, c) not in chosen:
-            why = missing(a, b, c)
             reason = (f"with {' and '.join(why)} (not combined yet)" if why
                       else "next to another thin layer (only one of two neighbours is coupled)")
             warnings.warn(f"layer {layers[b - 1].name!r} ({layers[b - 1].thickness_um:g} µm) is thinner than the "

@@ -112,8 +112,7 @@ def _run_fit(args) -> int:
     if not args.no_cache:
         enable_compilation_cache()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the notes are printed with the table below
-        warnings.simplefilter("default", ModelWarning)  # a model less exact than asked: said at once
+        _notes_with_the_table()
         fitter = Fitter(scene, accuracy=args.accuracy, n_starts=args.starts, max_steps=args.max_steps,
                         progress=not args.quiet)
         result = fitter(seed=args.seed)
@@ -149,8 +148,7 @@ def _run_fit_image(args) -> int:
     if not args.no_cache:
         enable_compilation_cache()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the notes are printed with the table below
-        warnings.simplefilter("default", ModelWarning)  # a model less exact than asked: said at once
+        _notes_with_the_table()
         result = fit_image(scene, accuracy=args.accuracy, progress=not args.quiet)
     write_image_fit(result, Path(args.out))
     shared = result.shared
@@ -310,6 +308,13 @@ def _fit_command(commands, name: str, scene_help: str, handler, **texts) -> argp
                          help="compile without the persistent compilation cache")
     command.set_defaults(handler=handler)
     return command
+
+
+def _notes_with_the_table() -> None:
+    """Inside ``warnings.catch_warnings``: a fit's notes wait for its table; a model less exact
+    than asked (``ModelWarning``) is said at once."""
+    warnings.simplefilter("ignore")
+    warnings.simplefilter("default", ModelWarning)
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
