@@ -5,9 +5,11 @@ of Al (the Al faces fixed at +-500 µm), BOA white beam (square 40 mm at 7.5 m),
 the left edge at 1.1 and 10 mm, tilts 0 and 0.24°, t = 0, 0.5, 1, 2, 5, 10, 20 µm. One
 compiled model (the skin thickness free, so the coupled thin-layer kernels serve every t);
 the tracer (``fwdfit.reference``) with N rays per profile. Also: one evaluation's time and
-the compile time, against the bare Al block on the same pixels (no thin layer).
+the compile time, against the bare Al block on the same pixels (no thin layer). ``--fresnel``:
+the same with Fresnel partial reflection in the model and the tracer.
 
-    python benchmarks/thin_layers.py [--quick]   -> benchmarks/results/thin_layers.{json,md}
+    python benchmarks/thin_layers.py [--quick] [--fresnel]
+        -> benchmarks/results/thin_layers[_fresnel].{json,md}
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ AL = dict(sld_e6_per_A2=2.078, mu_per_m=1.39, mu_per_m_per_A=0.1)
 SPECTRUM = ROOT / "tests" / "data" / "raytrace_thin" / "spectrum_boa.csv"
 
 
-def scene(thickness_um: float, skin: bool = True) -> fwdfit.Scene:
+def scene(thickness_um: float, skin: bool = True, fresnel: bool = False) -> fwdfit.Scene:
     table = read_columns(SPECTRUM, ("lambda_A", "weight"))
     layers = (fwdfit.Layer("Al", 1000.0, **AL),)
     if skin:
@@ -46,7 +48,7 @@ def scene(thickness_um: float, skin: bool = True) -> fwdfit.Scene:
     grid = {1.1: fwdfit.pixel_grid(-600.0, -400.0, 2.4), 10.0: fwdfit.pixel_grid(-720.0, -280.0, 2.4)}
     return fwdfit.Scene(
         sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=0.0, centre_um=0.0, layers=layers),
-        instruments={"boa": fwdfit.Instrument("square", 40.0, 7.5, 2.4)},
+        instruments={"boa": fwdfit.Instrument("square", 40.0, 7.5, 2.4, fresnel=fresnel)},
         spectra={"white": fwdfit.TabulatedSpectrum(table["lambda_A"], table["weight"], SPECTRUM)},
         profiles=tuple(fwdfit.Profile(f"d{d:04.1f}mm", d, "white", "boa", grid[d]) for d in DISTANCES_MM),
         fit=fwdfit.FitSpec(("layers.skin_l.thickness_um", "layers.skin_r.thickness_um") if skin else ()))
@@ -65,12 +67,13 @@ def timed(function, *args, repeat=5):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer rays, thicknesses 0, 2, 20 µm")
+    parser.add_argument("--fresnel", action="store_true", help="Fresnel partial reflection on")
     args = parser.parse_args()
     rays = {1.1: 1_000_000, 10.0: 2_000_000} if args.quick else {1.1: 8_000_000, 10.0: 12_000_000}
     thicknesses = (0.0, 2.0, 20.0) if args.quick else THICKNESS_UM
-    base = scene(2.0)
+    base = scene(2.0, fresnel=args.fresnel)
     model = fwdfit.build_model(base, free=base.fit.vary, tilt_range_deg=(0.0, 0.24))
-    bare = scene(0.0, skin=False)
+    bare = scene(0.0, skin=False, fresnel=args.fresnel)
     bare_model = fwdfit.build_model(bare, tilt_range_deg=(0.0, 0.24))
     params, bare_params = fwdfit.initial_params(base), fwdfit.initial_params(bare)
     compile_s, eval_s = timed(eqx.filter_jit(model), params)
@@ -90,18 +93,19 @@ def main() -> None:
                 ref = trace_reference(layers, depth_mm=2.0, tilt_deg=tilt, centre_um=0.0, aperture="square",
                                       aperture_mm=40.0, aperture_distance_m=7.5, distance_mm=profile.distance_mm,
                                       spectrum_lambda_A=table["lambda_A"], spectrum_weight=table["weight"],
-                                      pixel_edges_um=edges, n_rays=rays[profile.distance_mm], seed=7 + i)
+                                      pixel_edges_um=edges, n_rays=rays[profile.distance_mm], seed=7 + i,
+                                      fresnel=args.fresnel)
                 rms = lambda a: float(np.sqrt(np.nanmean(np.square(a))))
                 rows.append({"thickness_um": t, "tilt_deg": tilt, "distance_mm": profile.distance_mm,
                              "rms_T": rms(np.asarray(T[i]) - ref.T), "rms_T_att": rms(np.asarray(T_att[i]) - ref.T_att),
                              "tracer_noise_rms": rms(ref.T_err), "n_rays": rays[profile.distance_mm],
                              "trace_s": round(time.perf_counter() - start, 1)})
                 print(rows[-1], flush=True)
-    result = {"machine": machine_record(), "load_average": os.getloadavg(),
+    result = {"machine": machine_record(), "load_average": os.getloadavg(), "fresnel": args.fresnel,
               "evaluation_s": {"skin_coupled": eval_s, "bare_al": bare_eval_s},
               "compile_s": {"skin_coupled": compile_s, "bare_al": bare_compile_s}, "rows": rows}
-    folder = results_dir(args.quick)
-    (folder / "thin_layers.json").write_text(json.dumps(result, indent=1) + "\n")
+    folder, name = results_dir(args.quick), "thin_layers_fresnel" if args.fresnel else "thin_layers"
+    (folder / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = ["| t (µm) | tilt (°) | distance (mm) | RMS T - T_ref | RMS T_att - T_att,ref | tracer noise RMS |",
              "|---|---|---|---|---|---|"]
     lines += [f"| {r['thickness_um']:g} | {r['tilt_deg']:g} | {r['distance_mm']:g} | {r['rms_T']:.4f} | "
@@ -109,7 +113,7 @@ def main() -> None:
     lines += ["", f"One evaluation (2 profiles, float64): coupled skins {eval_s * 1e3:.0f} ms, bare Al "
               f"{bare_eval_s * 1e3:.0f} ms; compile + first call {compile_s:.0f} s vs {bare_compile_s:.0f} s "
               f"(load average {os.getloadavg()[0]:.1f})."]
-    (folder / "thin_layers.md").write_text("\n".join(lines) + "\n")
+    (folder / f"{name}.md").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

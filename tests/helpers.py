@@ -375,12 +375,16 @@ def free_layer_parameters(scene) -> list[str]:
             for key in ("thickness_um", "sld_e6_per_A2", "mu_per_m", "mu_per_m_per_A")]
 
 
-def skin_scene(thickness_um, free=(), fresnel=False):
+def skin_scene(thickness_um, free=(), fresnel=False, roughness_mrad=0.0):
     """An oxide skin (SLD 4.5, mu 100 /m) on 1 mm of Al, ICON 4 Å line, the outer edge at 1.1 mm;
-    thickness_um None: the bare Al block on the same instrument and pixels."""
+    thickness_um None: the bare Al block on the same instrument and pixels. roughness_mrad: the
+    RMS slope of the skin's inner face (skin | Al)."""
+    import dataclasses
+
     import fwdfit
 
-    skin = [] if thickness_um is None else [oxide_layer("skin", thickness_um, 4.5, 100.0)]
+    skin = [] if thickness_um is None else [dataclasses.replace(oxide_layer("skin", thickness_um, 4.5, 100.0),
+                                                                roughness_mrad=roughness_mrad)]
     layers = skin + [al_layer()]
     return make_scene(layers, profiles=[("d01.1mm", 1.1, -530.0, -470.0)],
                       spectrum=fwdfit.GaussianLine(4.0, 0.15), aperture="circular",

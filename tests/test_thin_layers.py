@@ -3,7 +3,8 @@
 Checked against the exact ray tracer's profiles stored in ``tests/data/raytrace_thin``
 (generator and provenance there): a 2 µm and a 1.2 µm oxide skin on 1 mm of Al and a
 4 µm Ti layer (SLD -1.95, mu 60 /m) inside Al, BOA white beam at 1.1 and 10 mm and an
-ICON 4 Å line at 1.1 mm, tilts 0 and 0.24°, default accuracy, float64. A free thickness
+ICON 4 Å line at 1.1 mm, tilts 0 and 0.24°, with and without Fresnel reflection (the
+``*_fresnel`` cases), default accuracy, float64. A free thickness
 going to 0 must make the layer vanish smoothly; thick scenes must not change.
 """
 
@@ -31,7 +32,7 @@ def evaluate():
     return eqx.filter_jit(lambda model, params: model(params))
 
 
-@pytest.mark.slow  # ~80 s per compiled model on a loaded 2-core machine, two models
+@pytest.mark.slow  # ~80 s per compiled model on a loaded 2-core machine, four models (Fresnel off and on)
 @pytest.mark.parametrize("case", CASES)
 def test_thin_layer_matches_the_tracer(case, evaluate):
     scene = fwdfit.load_scene(DATA / case / "scene.toml")
@@ -60,14 +61,15 @@ def test_thick_scenes_are_planned_as_before():
 
 
 def test_a_thin_layer_left_independent_is_reported():
-    """A 2 µm skin is coupled without a warning; with Fresnel reflection on, or as one of two
-    adjacent thin layers, its faces stay independent and a ModelWarning names it and why."""
-    scene = skin_scene(2.0)
+    """A 2 µm skin is coupled without a warning, with Fresnel reflection on or off; with a rough
+    face, or as one of two adjacent thin layers, its faces stay independent and a ModelWarning
+    names it and why."""
     with warnings.catch_warnings():
         warnings.simplefilter("error", fwdfit.ModelWarning)
-        assert fwdfit.build_model(scene).thin
-    with pytest.warns(fwdfit.ModelWarning, match=r"layer 'skin' \(2 µm\).*with Fresnel reflection"):
-        assert fwdfit.build_model(skin_scene(2.0, fresnel=True)).thin == ()
+        assert fwdfit.build_model(skin_scene(2.0)).thin
+        assert fwdfit.build_model(skin_scene(2.0, fresnel=True)).thin
+    with pytest.warns(fwdfit.ModelWarning, match=r"layer 'skin' \(2 µm\).*with a rough face"):
+        assert fwdfit.build_model(skin_scene(2.0, roughness_mrad=1.0)).thin == ()
     two = make_scene([oxide_layer("outer", 1.0, 4.5, 100.0), oxide_layer("inner", 2.0, 3.0, 50.0), al_layer()],
                      profiles=[("p", 1.1, -530.0, -470.0)], spectrum=fwdfit.GaussianLine(4.0, 0.15))
     with pytest.warns(fwdfit.ModelWarning, match="next to another thin layer") as caught:
@@ -76,7 +78,7 @@ def test_a_thin_layer_left_independent_is_reported():
 
 
 def test_the_command_line_prints_the_model_warning_as_one_line(tmp_path, capsys):
-    path = fwdfit.save_scene(skin_scene(2.0, fresnel=True), tmp_path / "scene.toml")
+    path = fwdfit.save_scene(skin_scene(2.0, roughness_mrad=1.0), tmp_path / "scene.toml")
     assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if line]
     assert len(lines) == 1 and lines[0].startswith("warning: layer 'skin'"), lines

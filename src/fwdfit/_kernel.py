@@ -21,6 +21,7 @@ R = ((a - a2) / (a + a2))^2, for either sign of k.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -164,13 +165,18 @@ def _sided_kinks(right, left, right_of_interface):
     return tuple(jnp.where(right_of_interface, a, b) for a, b in zip(right, left))
 
 
-def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights):
+def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, returning=None):
     """Crossing rays that Fresnel reflection moves from the refracted to the reflected beam.
 
     Of the rays above the critical angle (every ray for k <= 0) a fraction R(a) =
     ((a - a2) / (a + a2))^2 is reflected (leaves at -a) instead of refracted. Returns
     (loss, gain): the refracted rays landing left of each edge that are lost, and the
     reflected rays that land there, both as masses like ``deflected_cumulative``.
+    returning = (turn, beyond, leaves, below), for the second face of a thin layer: reflected
+    rays above ``turn`` go back through the layer; the share ``leaves(a)`` of them leaves it
+    through its first face (those above ``beyond`` land left of the edge), the rest is reflected
+    there too and leaves the back inside the layer (those below ``below`` land left of the
+    edge). Returns (loss, gain, returned) then, gain those below ``turn`` and the latter.
 
     With v = |k| / (a + a2)^2 (v in (0, 1], 1 at the critical angle, or at a = 0 for
     k < 0) R = v^2 and a(v) = sqrt|k| (v^-1/2 + sign(k) v^1/2) / 2, so that, after an
@@ -189,18 +195,31 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights):
     def v_at(a):  # at most 1, also where no ray is above the critical angle (a = a_max < sqrt(k))
         return jnp.abs(k) / jnp.maximum(jnp.square(a + _safe_sqrt(a * a - k)), jnp.abs(k))
 
-    def reflected_mass(a_low, a_high):  # int_{a_low}^{a_high} R dM, a_low <= a_high
+    def reflected_mass(a_low, a_high, share=None):  # int_{a_low}^{a_high} R share dM, a_low <= a_high
         a_low, a_high = jnp.broadcast_arrays(a_low, a_high)
         v_low, v_high = v_at(a_low), v_at(a_high)  # v_high <= v_low
+
+        def weight(v):  # R, times the share of those rays (a function of a) where given
+            s = jnp.sqrt(v)
+            a = jnp.clip(0.5 * (root / s + (k / root) * s), a_low, a_high)
+            return (v * v if share is None else v * v * share(a)), a
+
         base = mass.primitive(a_low)
         along = np.asarray(nodes).reshape((-1,) + (1,) * v_low.ndim)  # a leading node axis
         v = v_high + (v_low - v_high) * along
-        s = jnp.sqrt(v)
-        a = jnp.clip(0.5 * (root / s + (k / root) * s), a_low, a_high)
-        integral = jnp.tensordot(np.asarray(weights), 2.0 * v * (mass.primitive(a) - base), 1)
-        return v_high**2 * (mass.primitive(a_high) - base) + (v_low - v_high) * integral
+        (_, a), (slope, _) = jax.jvp(weight, (v,), (jnp.ones_like(v),))  # slope: d weight / dv
+        integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(a) - base), 1)
+        return weight(v_high)[0] * (mass.primitive(a_high) - base) + (v_low - v_high) * integral
 
-    return reflected_mass(critical, lost_up_to), reflected_mass(gained_from, mass.a_max)
+    if returning is None:
+        return reflected_mass(critical, lost_up_to), reflected_mass(gained_from, mass.a_max)
+    turn, beyond, leaves, below = returning
+    turn = jnp.clip(turn, critical, mass.a_max)
+    stays = lambda a: 1.0 - leaves(a)
+    gained = (reflected_mass(jnp.minimum(gained_from, turn), turn)
+              + reflected_mass(turn, jnp.clip(below, turn, mass.a_max), stays))
+    return (reflected_mass(critical, lost_up_to), gained,
+            reflected_mass(jnp.clip(beyond, turn, mass.a_max), mass.a_max, leaves))
 
 
 def landing_range(offset, half_width, k, fresnel: bool, xp=jnp):

@@ -355,13 +355,17 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     L = group.aperture_distance_um
     limits = None if restrict is None else _thin.face_limits(restrict, z_lo, z_hi)
 
-    def mass_at(z, tilt=None, deflected=False):
+    def mass_at(z, tilt=None, deflected=False, fresnel=False):
         source_to_z = L - distance_um + z
-        ceiling = None if limits is None else limits(z)[int(deflected)]
+        floor = ceiling = None
+        if limits is not None and fresnel:
+            floor, ceiling = _thin.fresnel_limits(restrict, limits, z, k.reshape(-1, 1, 1))
+        elif limits is not None:
+            ceiling = limits(z)[int(deflected)]
         return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um, tilt,
-                           ceiling=ceiling)
+                           floor, ceiling)
 
-    def nodes(kinks, aim, tilt=None, deflected=False, more_cuts=()):
+    def nodes(kinks, aim, tilt=None, deflected=False, more_cuts=(), fresnel=False):
         """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
         if restrict is None:
             cuts = ()
@@ -372,7 +376,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         z, dz = _kink_aligned_depths(lambda z: mass_at(z, tilt, deflected), kinks, aim, distance_um, z_lo, z_hi,
                                      group, cuts)
         node_tilt = None if tilt is None else tilt[..., None]
-        return (z, dz * L / (L - distance_um + z), mass_at(z, node_tilt, deflected),
+        return (z, dz * L / (L - distance_um + z), mass_at(z, node_tilt, deflected, fresnel),
                 aim[..., None, :] / (distance_um - z))
 
     per_lam = (-1, 1, 1)  # per-wavelength values against (N, e) or (l, N, e) nodes
@@ -424,11 +428,24 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         refracted = refracted + mass.behind(grazing)
     deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
     if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks
-        z, scale, mass, grazing = nodes(shifted(lambda m: fresnel_kinks(m, k_l, right_of_interface)), aim_l, tilt)
+        z, scale, mass, grazing = nodes(shifted(lambda m: fresnel_kinks(m, k_l, right_of_interface)), aim_l, tilt,
+                                        fresnel=True)
         local = grazing if tilt is None else grazing - tilt[..., None]
-        lost, gained = fresnel_transfer(mass, local, k_l[..., None], group.fresnel_nodes,
-                                        group.fresnel_weights)
-        deflected = deflected + summed(jnp.sum((reflected_path * gained - true_path(z) * lost) * scale, axis=-2))
+        gauss = (group.fresnel_nodes, group.fresnel_weights)
+        if limits is None:
+            lost, gained = fresnel_transfer(mass, local, k_l[..., None], *gauss)
+            reflected = reflected_path * gained
+        else:  # rays reflected at a thin layer's second face above ``turn`` cross it back into its A
+            w, forward, k_ab, mu_a = restrict[0], restrict[1], restrict[4].reshape(per_lam), restrict[5].reshape(per_lam)
+            turn = jnp.where(forward, mass.a_max, jnp.maximum(w / jnp.maximum(z_hi - z, _thin.TINY),
+                                                              _thin.root(jnp.maximum(-k_ab, 0.0))))
+            beyond = _thin.angle_landing_at(aim_l[..., None, :], distance_um - z, w, k_ab, 1, -1, turn, mass.a_max)
+            leaves = lambda a: 1.0 - _thin.reflectivity(_thin.root(a * a + k_ab), a)
+            below = (aim_l[..., None, :] + 2.0 * w) / (distance_um - z)  # landing a lever - 2 w
+            lost, gained, returned = fresnel_transfer(mass, local, k_l[..., None], *gauss,
+                                                      (turn, beyond, leaves, below))
+            reflected = reflected_path * gained + jnp.exp(-mu_from_l * (z - z_lo) - mu_a * (z_hi - z)) * returned
+        deflected = deflected + summed(jnp.sum((reflected - true_path(z) * lost) * scale, axis=-2))
     return deflected - stepped, attenuation
 
 
@@ -568,8 +585,8 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         for sign, first, second, (a, b, c) in ((1.0, layer.layer - 1, layer.layer, (layer.left, layer.layer, layer.right)),
                                                (-1.0, layer.layer, layer.layer - 1, (layer.right, layer.layer, layer.left))):
             trapped = _thin.root(jnp.minimum(k([b], [a]), k([b], [c]))[0])  # guided in B below
-            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped),
-                      (sign, second, b, c, w, False, k([b], [c])[0], trapped)]
+            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped,
+                       (a, b)), (sign, second, b, c, w, False, k([b], [c])[0], trapped, (a, b))]
             through.append((sign, first, second, a, b, c, w, trapped))
 
     def place(sign, landing_um, cumulative):
@@ -578,8 +595,9 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     sign = jnp.asarray([f[0] for f in faces], boundary.dtype)
     position, before, after = (np.asarray([f[i] for f in faces]) for i in (1, 2, 3))
     b = boundary[position]
+    outer, inner = (np.asarray([f[8][i] for f in faces]) for i in (0, 1))  # A and B of each face's layer
     restrict = (jnp.stack([f[4] for f in faces]), jnp.asarray([f[5] for f in faces]),
-                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]))
+                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]), k(outer, inner), mu[:, outer].T)
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after),

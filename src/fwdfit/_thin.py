@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._kernel import AngularMass, deflected_kinks, straight_kinks
+from ._kernel import AngularMass, deflected_kinks, fresnel_kinks, straight_kinks
 
 NEWTON_STEPS = 6  # for the incoming angle that lands at an edge after both faces
 # µm or rad: keeps w / reach and w / u finite (and 0 for w = 0); its fourth power stays a normal
@@ -72,6 +72,16 @@ def face_limits(restrict, z_lo, z_hi):
     return limits
 
 
+def fresnel_limits(restrict, limits, z, k):
+    """(floor, ceiling) (rad) of the incoming angles of the rays that a thin layer's face
+    refracts and keeps (``restrict`` and ``limits`` as in ``face_limits``; k (n_lam, 1, 1) the
+    face's): above those it reflects (reflect_k), and for the first face those whose outgoing
+    angle stays below the limit, sqrt(limit^2 + k); Fresnel reflection acts on these."""
+    forward, reflect_k = restrict[1], restrict[2].reshape(k.shape)
+    cut = limits(z)[0]
+    return root(jnp.maximum(reflect_k, 0.0)) * (reflect_k > 0), jnp.where(forward, root(cut * cut + k), cut)
+
+
 def root(x):
     """sqrt with finite derivatives where its argument is clipped at 0 (as ``_kernel._safe_sqrt``)."""
     return jnp.sqrt(jnp.maximum(x, TINY**2))
@@ -104,22 +114,38 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
     return (jnp.where(forward, stays, started),) + ends
 
 
-def _weighted_mass(mass: AngularMass, angle_of, u_lo, u_hi, c, nodes, weights):
-    """int exp(-c / u) dM(angle_of(u)) over u in [u_lo, u_hi] (by parts, Gauss nodes on [0, 1]).
+def _weighted_mass(mass: AngularMass, angle_of, u_lo, u_hi, factor, nodes, weights):
+    """int factor(u) dM(angle_of(u)) over u in [u_lo, u_hi] (by parts, Gauss nodes on [0, 1]).
 
-    exp(-c / u) is the extra attenuation of a path w / u in B; c = (mu_B - mu_C) w. For
-    c = 0 this is the mass between angle_of(u_lo) and angle_of(u_hi), exactly.
+    factor: an elementwise function of u, e.g. ``_path_factor`` (the extra attenuation of a
+    path w / u in B) times the share that Fresnel reflection lets through. For a constant
+    factor 1 this is the mass between angle_of(u_lo) and angle_of(u_hi), exactly.
     """
-    def factor(u):
-        return jnp.exp(-c / jnp.maximum(u, TINY))
-
-    u_lo, u_hi, c = jnp.broadcast_arrays(u_lo, u_hi, c)
+    u_lo, u_hi = jnp.broadcast_arrays(u_lo, u_hi)
     base = mass.primitive(angle_of(u_lo))
     along = np.asarray(nodes).reshape((-1,) + (1,) * u_lo.ndim)
     u = u_lo + (u_hi - u_lo) * along
-    slope = factor(u) * c / jnp.square(jnp.maximum(u, TINY))  # d factor / du
+    _, slope = jax.jvp(factor, (u,), (jnp.ones_like(u),))  # d factor / du
     integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(angle_of(u)) - base), 1)
     return factor(u_hi) * (mass.primitive(angle_of(u_hi)) - base) - (u_hi - u_lo) * integral
+
+
+def _path_factor(c):
+    """u -> exp(-c / u): the extra attenuation of a path w / u in B, c = (mu_B - mu_other) w."""
+    return lambda u: jnp.exp(-c / jnp.maximum(u, TINY))
+
+
+def reflectivity(a, b):
+    """Fresnel reflectivity ((a - b) / (a + b))^2 of a face between grazing angles a and b (rad)
+    on its two sides, either direction; 1 where both are 0."""
+    return jnp.square((a - b) / jnp.maximum(a + b, TINY))
+
+
+def _fresnel_reflectivities(u, k_ab, kappa):
+    """Fresnel reflectivities (R1, R2) (each like u) that a ray crossing B at angle u meets at
+    the first face (from A at sqrt(u^2 + k_AB)) and at the second (into C at sqrt(u^2 + kappa));
+    k_ab, kappa = k_AB - k_AC: as in ``through_kernel``."""
+    return (reflectivity(root(u * u + k_ab), u), reflectivity(u, root(jnp.maximum(u * u + kappa, 0.0))))
 
 
 def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_um, depth_nodes):
@@ -164,7 +190,8 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     stepped = jnp.sum(stepped * scale, axis=-2)
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))  # (l, N, e)
     c = ((mu_b - mu_c) * w).reshape(per_lam)
-    straight = _weighted_mass(mass, lambda a: a, mass.a_min, end, c, *gauss)
+    lo, end, _ = jnp.broadcast_arrays(mass.a_min, end, c)  # (l, N, e)
+    straight = _weighted_mass(mass, lambda a: a, lo, end, _path_factor(c), *gauss)
     attenuation = jnp.sum(jnp.tensordot(wavelength_weight, outside * straight, 1) * scale, axis=-2) - stepped
 
     # Refracted rays: u = sqrt(a^2 - k_AB) in B, above w / (z_hi - z) and above the second face's
@@ -184,19 +211,66 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
 
     floor_ends = tuple(z_hi - w / jnp.maximum(root(jnp.maximum(a * a - k_ab_l, 0.0)), TINY)
                        for a in (view.a_min, view.a_max))  # u = w / (z_hi - z) at the fan's ends
-    z, scale, grazing = nodes(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0), aim_l,
-                              (floor_cut, critical_cut, end_cut(view.a_min), end_cut(view.a_max)) + floor_ends)
-    mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
+    cuts = (floor_cut, critical_cut, end_cut(view.a_min), end_cut(view.a_max)) + floor_ends
     k_ab_n, kappa = k_ab.reshape(per_lam), (k_ab - k_ac).reshape(per_lam)
-    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, TINY), root(jnp.maximum(-kappa, 0.0)))
-    a_lo = jnp.clip(root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
-    u_lo = root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
-    u_hi = jnp.maximum(root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
-    u = _landing_u(aim_l[..., None, :], distance_um - z, w, kappa, u_lo, u_hi)
-    incoming = lambda v: jnp.clip(root(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
-    refracted = _weighted_mass(mass, incoming, u_lo, u, c, *gauss)
+
+    def crossing(kinks):
+        """Depth nodes aligned with ``kinks``, and there the rays that cross B: their masses,
+        incoming angles from a_lo, angles u in B from u_lo to u_hi, and u -> incoming angle."""
+        z, scale, grazing = nodes(kinks, aim_l, cuts)
+        mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
+        u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, TINY), root(jnp.maximum(-kappa, 0.0)))
+        a_lo = jnp.clip(root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
+        u_lo = root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
+        u_hi = jnp.maximum(root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
+        incoming = lambda v: jnp.clip(root(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
+        return z, scale, grazing, mass, a_lo, u_lo, u_hi, incoming
+
+    z, scale, grazing, mass, a_lo, u_lo, u_hi, incoming = crossing(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0))
+    lever = distance_um - z
+    u = angle_landing_at(aim_l[..., None, :], lever, w, kappa, 1, 1, u_lo, u_hi)
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))
-    deflected = wavelength_weight @ jnp.sum(outside * refracted * scale, axis=-2)
+    if not group.fresnel_nodes:
+        refracted = _weighted_mass(mass, incoming, u_lo, u, _path_factor(c), *gauss)
+        return wavelength_weight @ jnp.sum(outside * refracted * scale, axis=-2) - stepped, attenuation
+    # Fresnel: a ray crossing B at u goes on into C with (1 - R1)(1 - R2); with R1 the first face
+    # reflects it (it leaves at -a from depth z); with (1 - R1) R2 the second face sends it back:
+    # it leaves the first face at -a from depth z + 2 w / u with 1 - R1, or, beyond the back, B
+    # itself at -u; the first face turns R1 of these back again, on into C after three passes or
+    # out of the back of B (further bounces, third order in R, are left out).
+    reflectivities = lambda v: _fresnel_reflectivities(v, k_ab_n, kappa)
+    # R1 and R2 have square-root kinks at the critical angles, which sit at the lower end u_lo:
+    # nodes u = lo + (hi - lo) t^2 (Gauss in t) integrate them as smooth functions
+    t, weight = (np.asarray(v) for v in gauss)
+    near_lo = (tuple(t * t), tuple(2.0 * t * weight))
+    on = lambda v: _path_factor(c)(v) * (1.0 - reflectivities(v)[0]) * (1.0 - reflectivities(v)[1])
+    second = lambda v: (1.0 - reflectivities(v)[0]) * reflectivities(v)[1]
+    again = lambda v: second(v) * reflectivities(v)[0]
+    turn = jnp.clip(2.0 * w / jnp.maximum(z_hi - z, TINY), u_lo, u_hi)  # above it they return before the back
+    third = jnp.clip(3.0 * w / jnp.maximum(z_hi - z, TINY), turn, u_hi)  # ... and reach C again
+    u_third = angle_landing_at(aim_l[..., None, :], lever, w, kappa, 3, 1, third, u_hi)
+    refracted = (_weighted_mass(mass, incoming, u_lo, u, on, *near_lo)
+                 + _weighted_mass(mass, incoming, third, u_third, lambda v: _path_factor(c)(v) * again(v), *near_lo))
+    behind_from = jnp.clip((2.0 * w - aim_l[..., None, :]) / lever, u_lo, turn)  # landing 2 w - u lever
+    behind_to = jnp.clip((aim_l[..., None, :] + 2.0 * w) / lever, turn, third)  # landing u lever - 2 w
+    behind = (_weighted_mass(mass, incoming, behind_from, turn, second, *near_lo)
+              + _weighted_mass(mass, incoming, turn, behind_to, again, *near_lo))
+    in_b_path = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_b.reshape(per_lam) * (z_hi - z))
+    deflected = wavelength_weight @ jnp.sum((outside * refracted + in_b_path * behind) * scale, axis=-2)
+
+    # the rays that leave back into A, on depth nodes aligned with the kinks of reflected rays
+    z, scale, grazing, mass, a_lo, u_lo, u_hi, incoming = crossing(lambda m: fresnel_kinks(m, k_ac_l, aim_l > 0))
+    lever = distance_um - z
+    first_from = root(jnp.maximum(jnp.clip(-grazing, a_lo, mass.a_max) ** 2 - k_ab_n, 0.0))
+    first = _weighted_mass(mass, incoming, jnp.clip(first_from, u_lo, u_hi), u_hi, lambda v: reflectivities(v)[0],
+                           *near_lo)
+    turn = jnp.clip(2.0 * w / jnp.maximum(z_hi - z, TINY), u_lo, u_hi)
+    back_from = angle_landing_at(aim_l[..., None, :], lever, w, k_ab_n, 2, -1, turn, u_hi)
+    c_back = ((mu_b - mu_a) * 2.0 * w).reshape(per_lam)
+    back = _weighted_mass(mass, incoming, back_from, u_hi,
+                          lambda v: _path_factor(c_back)(v) * second(v) * (1.0 - reflectivities(v)[0]), *near_lo)
+    reflected_path = jnp.exp(-mu_a.reshape(per_lam) * depth_um)
+    deflected = deflected + wavelength_weight @ jnp.sum(reflected_path * (first + back) * scale, axis=-2)
     return deflected - stepped, attenuation
 
 
@@ -234,27 +308,30 @@ def guided_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_u
     return wavelength_weight @ (jnp.exp(-mu_b * depth_um)[:, None] * guided), jnp.zeros_like(aim)
 
 
-def _landing_u(aim, lever, w, kappa, u_lo, u_hi):
-    """The angle u in B (clipped to [u_lo, u_hi]) whose ray lands at ``aim`` after both faces.
+def angle_landing_at(aim, lever, w, k_out, passes, sign, lo, hi):
+    """The angle x in B (clipped to [lo, hi]) of the ray that crosses B ``passes`` times before it
+    leaves at y = sqrt(x^2 + k_out) and lands at ``aim`` (µm, from the face it entered B by, or
+    for sign -1 from the face that reflected it).
 
-    Solves a_C(u) (lever - w / u) + w = aim, a_C = sqrt(u^2 + kappa), increasing in u
-    wherever u > w / lever, by Newton steps from the solution for w = 0.
+    sign +1: it leaves through the second face, onward (w + y (lever - passes w / x) = aim);
+    -1: it leaves through the first face, back (y (lever - passes w / x) + (2 - passes) w = -aim;
+    passes 1: reflected at the second face, 2: entered and returned). The landing is monotonic
+    in x wherever x > passes w / lever. Newton steps from the solution for w = 0.
     """
-    def a_c(u):
-        return root(jnp.maximum(u * u + kappa, TINY**2))
+    offset = w if sign > 0 else (2 - passes) * w
 
-    def newton(u):
-        out, safe = a_c(u), jnp.maximum(u, TINY)
-        arm = lever - w / safe
-        value = out * arm + w - aim
-        slope = u / out * arm + out * w / (safe * safe)
-        return jnp.clip(u - value / jnp.maximum(slope, TINY), u_lo, u_hi)
+    def newton(x):
+        y, safe = root(x * x + k_out), jnp.maximum(x, TINY)
+        arm = lever - passes * w / safe
+        value = y * arm + offset - sign * aim
+        slope = x / y * arm + y * passes * w / (safe * safe)
+        return jnp.clip(x - value / jnp.maximum(slope, TINY), lo, hi)
 
-    first = (aim - w) / lever
-    u = jnp.clip(root(jnp.maximum(first * jnp.abs(first) - kappa, 0.0)), u_lo, u_hi)
+    first = (sign * aim - offset) / lever
+    x = jnp.clip(root(jnp.maximum(first * jnp.abs(first) - k_out, 0.0)), lo, hi)
     for _ in range(NEWTON_STEPS - 1):
-        u = newton(u)
+        x = newton(x)
     # the last step from the converged root, held constant, carries the derivatives: at a
     # root they are the implicit ones, -(d value / d parameter) / slope, and reverse mode
     # differentiates one step rather than all of them
-    return newton(jax.lax.stop_gradient(u))
+    return newton(jax.lax.stop_gradient(x))

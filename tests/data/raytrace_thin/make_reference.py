@@ -7,7 +7,9 @@ of 1 mm of Al (profiles over the left edge), and a 4 µm Ti layer (SLD -1.95, mu
 BOA white-beam profile at 1.1 and 10 mm (square 40 mm aperture at 7.5 m) and an ICON 4 Å line
 (FWHM 15 %, circular 40 mm at 5.5 m) at 1.1 mm; no detector blur. ``trace_reference`` runs with
 N_RAYS rays in N_BATCHES batches (columns x_um, T, T_err, T_att, T_att_err). Gaussian lines are
-tabulated on 801 points over their support.
+tabulated on 801 points over their support. A case named ``<case>_fresnel`` is the same with
+Fresnel partial reflection on (``fresnel = true`` in both instruments, ``trace_reference(...,
+fresnel=True)``).
 
     cd tests/data/raytrace_thin && PYTHONPATH=../../../src python3 make_reference.py [case ...]
 """
@@ -42,15 +44,15 @@ def _layers(sample: str):
     return (fwdfit.Layer("Al_l", 500.0, **AL), fwdfit.Layer("Ti", 4.0, **TI), fwdfit.Layer("Al_r", 500.0, **AL)), 0.0
 
 
-def scene_of(sample: str, tilt_deg: float) -> fwdfit.Scene:
+def scene_of(sample: str, tilt_deg: float, fresnel: bool = False) -> fwdfit.Scene:
     """The case's scene: BOA profiles at 1.1 and 10 mm and an ICON line at 1.1 mm."""
     layers, edge = _layers(sample)
     table = read_columns(HERE / "spectrum_boa.csv", ("lambda_A", "weight"))
     grid = lambda half: fwdfit.pixel_grid(edge - half, edge + half, 2.4)
     return fwdfit.Scene(
         sample=fwdfit.Sample(depth_mm=2.0, tilt_deg=tilt_deg, centre_um=0.0, layers=layers),
-        instruments={"boa": fwdfit.Instrument("square", 40.0, 7.5, 2.4),
-                     "icon": fwdfit.Instrument("circular", 40.0, 5.5, 2.4)},
+        instruments={"boa": fwdfit.Instrument("square", 40.0, 7.5, 2.4, fresnel=fresnel),
+                     "icon": fwdfit.Instrument("circular", 40.0, 5.5, 2.4, fresnel=fresnel)},
         spectra={"white": TabulatedSpectrum(table["lambda_A"], table["weight"], HERE / "spectrum_boa.csv"),
                  "l40": GaussianLine(4.0, 0.15)},
         profiles=(fwdfit.Profile("boa_d01.1mm", 1.1, "white", "boa", grid(72.0)),
@@ -68,12 +70,15 @@ def _spectrum_table(spectrum):
 
 def make(case: str) -> None:
     sample, tilt = case.split("_tilt")
+    fresnel = tilt.endswith("_fresnel")
     folder = HERE / case
     folder.mkdir(exist_ok=True)
-    scene = fwdfit.scene.load_scene(fwdfit.scene.save_scene(scene_of(sample, float(tilt)), folder / "scene.toml"))
+    scene = fwdfit.scene.load_scene(fwdfit.scene.save_scene(
+        scene_of(sample, float(tilt.removesuffix("_fresnel")), fresnel), folder / "scene.toml"))
     layers = [ReferenceLayer(l.thickness_um, l.sld_e6_per_A2, l.mu_per_m, l.mu_per_m_per_A)
               for l in scene.sample.layers]
-    log = {"tracer": "fwdfit.reference.trace_reference", "n_batches": N_BATCHES, "profiles": []}
+    log = {"tracer": "fwdfit.reference.trace_reference", "n_batches": N_BATCHES, "fresnel": fresnel,
+           "profiles": []}
     for i, profile in enumerate(scene.profiles):
         instrument = scene.instruments[profile.instrument]
         lam, weight = _spectrum_table(scene.spectra[profile.spectrum])
@@ -85,7 +90,7 @@ def make(case: str) -> None:
                               aperture_distance_m=instrument.aperture_distance_m,
                               distance_mm=profile.distance_mm, spectrum_lambda_A=lam, spectrum_weight=weight,
                               pixel_edges_um=edges, n_rays=N_RAYS[profile.distance_mm], seed=SEED + i,
-                              n_batches=N_BATCHES)
+                              n_batches=N_BATCHES, fresnel=fresnel)
         elapsed = time.perf_counter() - start
         np.savetxt(folder / f"{profile.name}.csv",
                    np.column_stack([profile.x_um, ref.T, ref.T_err, ref.T_att, ref.T_att_err]),
@@ -98,7 +103,7 @@ def make(case: str) -> None:
     (folder / "case.json").write_text(json.dumps(log, indent=1) + "\n")
 
 
-CASES = [f"{s}_tilt{t}" for s in ("skin2", "skin1.2", "ti4") for t in ("0", "0.24")]
+CASES = [f"{s}_tilt{t}{f}" for f in ("", "_fresnel") for s in ("skin2", "skin1.2", "ti4") for t in ("0", "0.24")]
 
 if __name__ == "__main__":
     for name in sys.argv[1:] or CASES:
