@@ -103,8 +103,11 @@ def test_fresnel_thin_layer_vanishes_with_finite_derivatives():
     model = fwdfit.build_model(scene, free=(THICKNESS,), tilt_range_deg=(0.0, 0.24))
     assert model.thin, "a thin layer with Fresnel reflection is coupled"
     evaluate = eqx.filter_jit(lambda m, p: m(p)[0][0])
-    at = lambda p, t, tilt=0.0: replace_params(p, thickness_um=jnp.asarray([t, 1000.0], p.thickness_um.dtype),  # noqa: E731
-                                               tilt_deg=tilt)
+
+    def at(p, thickness_um, tilt_deg=0.0):
+        return replace_params(p, thickness_um=jnp.asarray([thickness_um, 1000.0], p.thickness_um.dtype),
+                              tilt_deg=tilt_deg)
+
     params = fwdfit.initial_params(scene)
     zero = np.asarray(evaluate(model, at(params, 0.0)))
     bare_scene = skin_scene(None, fresnel=True)

@@ -348,7 +348,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
     leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
     straight (``AngularMass``). restrict: a face of a coupled thin layer keeps only some
-    of its rays (``_thin.face_limits``; sharp faces only).
+    of its rays (``_thin.face_limits``; not rough): (w, forward, reflect_k, guided angle, k_AB,
+    mu_A) of its layer B between A and C; with Fresnel reflection the rays its second face
+    reflects cross B back into A (``_kernel.fresnel_transfer``'s ``returning``).
     """
     boundary, slope, z_mid, mu_from, mu_to, k, slope_rms = side
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
@@ -436,7 +438,8 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
             lost, gained = fresnel_transfer(mass, local, k_l[..., None], *gauss)
             reflected = reflected_path * gained
         else:  # rays reflected at a thin layer's second face above ``turn`` cross it back into its A
-            w, forward, k_ab, mu_a = restrict[0], restrict[1], restrict[4].reshape(per_lam), restrict[5].reshape(per_lam)
+            w, forward = restrict[:2]
+            k_ab, mu_a = (v.reshape(per_lam) for v in restrict[4:6])
             turn = jnp.where(forward, mass.a_max, jnp.maximum(w / jnp.maximum(z_hi - z, _thin.TINY),
                                                               _thin.root(jnp.maximum(-k_ab, 0.0))))
             beyond = _thin.angle_landing_at(aim_l[..., None, :], distance_um - z, w, k_ab, 1, -1, turn, mass.a_max)
@@ -597,7 +600,8 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     b = boundary[position]
     outer, inner = (np.asarray([f[8][i] for f in faces]) for i in (0, 1))  # A and B of each face's layer
     restrict = (jnp.stack([f[4] for f in faces]), jnp.asarray([f[5] for f in faces]),
-                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]), k(outer, inner), mu[:, outer].T)
+                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]),
+                k(outer, inner), mu[:, outer].T)
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after),

@@ -261,9 +261,9 @@ def thin_layers(scene: Scene, free: Collection[str], tilt_range_deg: tuple[float
     that starts thick, or at 0 (read off the data), keeps independent faces. A coupled layer
     needs thick neighbours: of two adjacent candidates only one is coupled (interior layers
     first, then the thinnest).
-    Not coupled (independent faces, as for thick layers): with Fresnel reflection, rough
-    faces or graded media at the layer (not combined yet). Every thin layer left with
-    independent faces is reported with a ``ModelWarning``.
+    Not coupled (independent faces, as for thick layers): with rough faces or graded media at
+    the layer (not combined yet). Every thin layer left with independent faces is reported
+    with a ``ModelWarning``.
     """
     layers = scene.sample.layers
     depth_um = scene.sample.depth_mm * 1e3

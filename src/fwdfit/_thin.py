@@ -18,8 +18,10 @@ for each crossing direction (here A -> C, the mirror C -> A alike), into disjoin
   they land at w + a_C (Delta - z - w / u); their path in B, w / u, weights them by
   exp(-(mu_B - mu_C) w / u).
 
-Rays of B reflected at a face are followed to the sample's back inside B (one
-reflection: rays guided along the layer by several reflections are not modelled).
+Rays of B totally reflected at a face are followed to the sample's back inside B (one
+reflection: rays guided along the layer by several reflections are not modelled). With
+Fresnel partial reflection (``through_kernel``, ``fresnel_limits``, ``angle_landing_at``) a
+ray crossing B is followed through its reflections at both faces up to the third pass.
 A free thickness going to 0 leaves the interface A | C, smoothly: below the neutron's
 evanescent depth the layer's values fade to A's (``_model._vanishing``).
 Local frame and units as in ``_kernel``; angles are slopes (rad), lengths µm.
@@ -32,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._kernel import AngularMass, deflected_kinks, fresnel_kinks, straight_kinks
+from ._kernel import AngularMass, deflected_kinks, straight_kinks
 
 NEWTON_STEPS = 6  # for the incoming angle that lands at an edge after both faces
 # µm or rad: keeps w / reach and w / u finite (and 0 for w = 0); its fourth power stays a normal
@@ -214,19 +216,13 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     cuts = (floor_cut, critical_cut, end_cut(view.a_min), end_cut(view.a_max)) + floor_ends
     k_ab_n, kappa = k_ab.reshape(per_lam), (k_ab - k_ac).reshape(per_lam)
 
-    def crossing(kinks):
-        """Depth nodes aligned with ``kinks``, and there the rays that cross B: their masses,
-        incoming angles from a_lo, angles u in B from u_lo to u_hi, and u -> incoming angle."""
-        z, scale, grazing = nodes(kinks, aim_l, cuts)
-        mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
-        u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, TINY), root(jnp.maximum(-kappa, 0.0)))
-        a_lo = jnp.clip(root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
-        u_lo = root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
-        u_hi = jnp.maximum(root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
-        incoming = lambda v: jnp.clip(root(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
-        return z, scale, grazing, mass, a_lo, u_lo, u_hi, incoming
-
-    z, scale, grazing, mass, a_lo, u_lo, u_hi, incoming = crossing(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0))
+    z, scale, grazing = nodes(lambda m: deflected_kinks(m, k_ac_l, aim_l > 0), aim_l, cuts)
+    mass = AngularMass(group.aperture, boundary + slope * z, slope, L - distance_um + z, group.aperture_um)
+    u_floor = jnp.maximum(w / jnp.maximum(z_hi - z, TINY), root(jnp.maximum(-kappa, 0.0)))
+    a_lo = jnp.clip(root(jnp.maximum(u_floor**2 + k_ab_n, 0.0)), mass.a_min, mass.a_max)
+    u_lo = root(jnp.maximum(a_lo**2 - k_ab_n, 0.0))
+    u_hi = jnp.maximum(root(jnp.maximum(mass.a_max**2 - k_ab_n, 0.0)), u_lo)
+    incoming = lambda v: jnp.clip(root(jnp.maximum(v * v + k_ab_n, 0.0)), a_lo, mass.a_max)
     lever = distance_um - z
     u = angle_landing_at(aim_l[..., None, :], lever, w, kappa, 1, 1, u_lo, u_hi)
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))
@@ -250,27 +246,23 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     third = jnp.clip(3.0 * w / jnp.maximum(z_hi - z, TINY), turn, u_hi)  # ... and reach C again
     u_third = angle_landing_at(aim_l[..., None, :], lever, w, kappa, 3, 1, third, u_hi)
     refracted = (_weighted_mass(mass, incoming, u_lo, u, on, *near_lo)
-                 + _weighted_mass(mass, incoming, third, u_third, lambda v: _path_factor(c)(v) * again(v), *near_lo))
+                 + _weighted_mass(mass, incoming, third, u_third, lambda v: _path_factor(c)(v) * again(v),
+                                  *near_lo))
     behind_from = jnp.clip((2.0 * w - aim_l[..., None, :]) / lever, u_lo, turn)  # landing 2 w - u lever
     behind_to = jnp.clip((aim_l[..., None, :] + 2.0 * w) / lever, turn, third)  # landing u lever - 2 w
     behind = (_weighted_mass(mass, incoming, behind_from, turn, second, *near_lo)
               + _weighted_mass(mass, incoming, turn, behind_to, again, *near_lo))
     in_b_path = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_b.reshape(per_lam) * (z_hi - z))
-    deflected = wavelength_weight @ jnp.sum((outside * refracted + in_b_path * behind) * scale, axis=-2)
-
-    # the rays that leave back into A, on depth nodes aligned with the kinks of reflected rays
-    z, scale, grazing, mass, a_lo, u_lo, u_hi, incoming = crossing(lambda m: fresnel_kinks(m, k_ac_l, aim_l > 0))
-    lever = distance_um - z
     first_from = root(jnp.maximum(jnp.clip(-grazing, a_lo, mass.a_max) ** 2 - k_ab_n, 0.0))
     first = _weighted_mass(mass, incoming, jnp.clip(first_from, u_lo, u_hi), u_hi, lambda v: reflectivities(v)[0],
                            *near_lo)
-    turn = jnp.clip(2.0 * w / jnp.maximum(z_hi - z, TINY), u_lo, u_hi)
     back_from = angle_landing_at(aim_l[..., None, :], lever, w, k_ab_n, 2, -1, turn, u_hi)
     c_back = ((mu_b - mu_a) * 2.0 * w).reshape(per_lam)
     back = _weighted_mass(mass, incoming, back_from, u_hi,
                           lambda v: _path_factor(c_back)(v) * second(v) * (1.0 - reflectivities(v)[0]), *near_lo)
     reflected_path = jnp.exp(-mu_a.reshape(per_lam) * depth_um)
-    deflected = deflected + wavelength_weight @ jnp.sum(reflected_path * (first + back) * scale, axis=-2)
+    deflected = wavelength_weight @ jnp.sum(
+        (outside * refracted + in_b_path * behind + reflected_path * (first + back)) * scale, axis=-2)
     return deflected - stepped, attenuation
 
 
