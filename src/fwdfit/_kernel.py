@@ -199,17 +199,22 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, retu
         a_low, a_high = jnp.broadcast_arrays(a_low, a_high)
         v_low, v_high = v_at(a_low), v_at(a_high)  # v_high <= v_low
 
-        def weight(v):  # R, times the share of those rays (a function of a) where given
+        def angle(v):
             s = jnp.sqrt(v)
-            a = jnp.clip(0.5 * (root / s + (k / root) * s), a_low, a_high)
-            return (v * v if share is None else v * v * share(a)), a
+            return jnp.clip(0.5 * (root / s + (k / root) * s), a_low, a_high)
+
+        def weight(v):  # R, times the share of those rays (a function of a) where given
+            return v * v * share(angle(v))
 
         base = mass.primitive(a_low)
         along = np.asarray(nodes).reshape((-1,) + (1,) * v_low.ndim)  # a leading node axis
         v = v_high + (v_low - v_high) * along
-        (_, a), (slope, _) = jax.jvp(weight, (v,), (jnp.ones_like(v),))  # slope: d weight / dv
-        integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(a) - base), 1)
-        return weight(v_high)[0] * (mass.primitive(a_high) - base) + (v_low - v_high) * integral
+        if share is None:  # d R / dv = 2 v
+            slope, at_high = 2.0 * v, v_high**2
+        else:
+            slope, at_high = jax.jvp(weight, (v,), (jnp.ones_like(v),))[1], weight(v_high)
+        integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(angle(v)) - base), 1)
+        return at_high * (mass.primitive(a_high) - base) + (v_low - v_high) * integral
 
     if returning is None:
         return reflected_mass(critical, lost_up_to), reflected_mass(gained_from, mass.a_max)

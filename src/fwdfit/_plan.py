@@ -49,7 +49,7 @@ _PAD_BUDGET = 4000
 _LAMBDA_NODES_SCALE = 0.6  # kernel wavelength nodes relative to the calibration before the step nodes
 _THIN_ANGLE_NODES = 3  # Gauss nodes of the attenuation inside a coupled thin layer (``_thin._weighted_mass``)
 # With Fresnel reflection they also carry the reflectivities of both faces (measured: a 1.2 µm skin
-# going to 0 µm is 7.6e-4, 1.1e-4 and 2.7e-5 off the bare block with Fresnel at 3, 4 and 6 nodes)
+# going to 0 µm is 7.8e-4, 1.3e-4 and 2.0e-5 off the bare block with Fresnel at 3, 4 and 6 nodes)
 _THIN_FRESNEL_ANGLE_NODES = 6
 # The thin kernels' integrands have more kinks than the depth cuts catch exactly: twice the depth
 # nodes per piece (measured: RMS 0.0027 -> 0.0013 for a 2 µm skin at 10 mm, 0.24°).

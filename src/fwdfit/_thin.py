@@ -116,25 +116,31 @@ def face_cuts(restrict, aim, distance_um, z_lo, z_hi, fan, k=None):
     return (jnp.where(forward, stays, started),) + ends
 
 
-def _weighted_mass(mass: AngularMass, angle_of, u_lo, u_hi, factor, nodes, weights):
+def _weighted_mass(mass: AngularMass, angle_of, u_lo, u_hi, factor, nodes, weights, slope=None):
     """int factor(u) dM(angle_of(u)) over u in [u_lo, u_hi] (by parts, Gauss nodes on [0, 1]).
 
     factor: an elementwise function of u, e.g. ``_path_factor`` (the extra attenuation of a
-    path w / u in B) times the share that Fresnel reflection lets through. For a constant
-    factor 1 this is the mass between angle_of(u_lo) and angle_of(u_hi), exactly.
+    path w / u in B) times the share that Fresnel reflection lets through; slope: its
+    derivative (default: by forward-mode differentiation). For a constant factor 1 this is
+    the mass between angle_of(u_lo) and angle_of(u_hi), exactly.
     """
     u_lo, u_hi = jnp.broadcast_arrays(u_lo, u_hi)
     base = mass.primitive(angle_of(u_lo))
     along = np.asarray(nodes).reshape((-1,) + (1,) * u_lo.ndim)
     u = u_lo + (u_hi - u_lo) * along
-    _, slope = jax.jvp(factor, (u,), (jnp.ones_like(u),))  # d factor / du
-    integral = jnp.tensordot(np.asarray(weights), slope * (mass.primitive(angle_of(u)) - base), 1)
+    d_factor = jax.jvp(factor, (u,), (jnp.ones_like(u),))[1] if slope is None else slope(u)
+    integral = jnp.tensordot(np.asarray(weights), d_factor * (mass.primitive(angle_of(u)) - base), 1)
     return factor(u_hi) * (mass.primitive(angle_of(u_hi)) - base) - (u_hi - u_lo) * integral
 
 
 def _path_factor(c):
     """u -> exp(-c / u): the extra attenuation of a path w / u in B, c = (mu_B - mu_other) w."""
     return lambda u: jnp.exp(-c / jnp.maximum(u, TINY))
+
+
+def _path_slope(c):
+    """The derivative in u of ``_path_factor(c)``."""
+    return lambda u: _path_factor(c)(u) * c / jnp.square(jnp.maximum(u, TINY))
 
 
 def reflectivity(a, b):
@@ -193,7 +199,7 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))  # (l, N, e)
     c = ((mu_b - mu_c) * w).reshape(per_lam)
     lo, end, _ = jnp.broadcast_arrays(mass.a_min, end, c)  # (l, N, e)
-    straight = _weighted_mass(mass, lambda a: a, lo, end, _path_factor(c), *gauss)
+    straight = _weighted_mass(mass, lambda a: a, lo, end, _path_factor(c), *gauss, _path_slope(c))
     attenuation = jnp.sum(jnp.tensordot(wavelength_weight, outside * straight, 1) * scale, axis=-2) - stepped
 
     # Refracted rays: u = sqrt(a^2 - k_AB) in B, above w / (z_hi - z) and above the second face's
@@ -227,7 +233,7 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     u = angle_landing_at(aim_l[..., None, :], lever, w, kappa, 1, 1, u_lo, u_hi)
     outside = jnp.exp(-mu_a.reshape(per_lam) * (z - z_lo) - mu_c.reshape(per_lam) * (z_hi - z))
     if not group.fresnel_nodes:
-        refracted = _weighted_mass(mass, incoming, u_lo, u, _path_factor(c), *gauss)
+        refracted = _weighted_mass(mass, incoming, u_lo, u, _path_factor(c), *gauss, _path_slope(c))
         return wavelength_weight @ jnp.sum(outside * refracted * scale, axis=-2) - stepped, attenuation
     # Fresnel: a ray crossing B at u goes on into C with (1 - R1)(1 - R2); with R1 the first face
     # reflects it (it leaves at -a from depth z); with (1 - R1) R2 the second face sends it back:
