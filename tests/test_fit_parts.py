@@ -24,7 +24,8 @@ from fwdfit.inference import cache_dir
 from fwdfit.inference import levenberg_marquardt
 from fwdfit.inference import forget_compiled
 from fwdfit.inference import assess, runs_z
-from fwdfit.inference import attenuation_from_plateau, outer_edges, refraction_edges, segment
+from fwdfit.inference import attenuation_from_plateau, one_edge, outer_edges, refraction_edges, segment
+from fwdfit.inference import estimate_starts, free_parameters
 from helpers import small_scene
 
 PIXEL_UM = 2.4
@@ -75,6 +76,49 @@ def test_outer_edges_of_a_transparent_block_from_its_refraction_spikes():
     found_left, found_right, _ = refraction_edges(x, T, 1.0, 0.005)
     assert found_left == pytest.approx(left, abs=PIXEL_UM)
     assert found_right == pytest.approx(right, abs=PIXEL_UM)
+
+
+@pytest.mark.parametrize("sample_right", [True, False])
+def test_one_edge_of_a_wide_absorbing_stack(sample_right):
+    """A window 144 µm wide over one edge of a stack 1 mm wide (2 % absorption, 6 µm
+    penumbra, 0.5 % noise): the edge within 2 µm, on the right side, the open level within
+    3 noise / sqrt(n)."""
+    rng = np.random.default_rng(5)
+    x = -574.0 + (np.arange(60) + 0.5) * PIXEL_UM
+    edge = -501.3
+    inside = np.clip((x - edge + 3.0) / 6.0, 0.0, 1.0)
+    T = 1.0 - 0.02 * (inside if sample_right else 1.0 - inside) + rng.normal(0.0, 0.005, x.shape)
+    found, right, level = one_edge(x, T, blur_um=8.4, pixel_um=PIXEL_UM)
+    assert right is sample_right
+    assert found == pytest.approx(edge, abs=2.0)
+    assert level == pytest.approx(1.0, abs=3 * 0.005 / math.sqrt(20))
+
+
+def test_one_edge_of_a_transparent_stack_and_its_placement():
+    """A nearly transparent stack (0.3 %, below the 0.5 % noise) shows its edge by refraction
+    spikes (gain outside, loss inside, 0.2 over 5 µm): found within a pixel. The estimate
+    places the stack on it: on the scene's face nearest to it, the outer edge while the scene's
+    centre is off by less than half the outer layer, the o | Al face where the scene puts that
+    face nearer."""
+    rng = np.random.default_rng(6)
+    x = -574.0 + (np.arange(60) + 0.5) * PIXEL_UM
+    edge = -500.3
+    T = np.where(x > edge, 0.997, 1.0) + rng.normal(0.0, 0.005, x.shape)
+    T[(x < edge) & (x > edge - 5)] += 0.2
+    T[(x > edge) & (x < edge + 5)] -= 0.2
+    found, _, _ = one_edge(x, T, blur_um=8.4, pixel_um=PIXEL_UM)
+    assert found == pytest.approx(edge, abs=PIXEL_UM)
+    layers = (fwdfit.Layer("o", 40.0, 3.5, 12.0), fwdfit.Layer("Al", 920.0, 2.078, 1.39),
+              fwdfit.Layer("o2", 40.0, 3.5, 12.0))
+    profile = fwdfit.Profile("edge", 1.1, "l46", "", x, T=T)
+    for centre, face_um in ((0.0, 0.0), (15.0, 0.0), (-15.0, 0.0), (-70.0, 40.0)):
+        scene = fwdfit.Scene(fwdfit.Sample(depth_mm=2.0, tilt_deg=0.0, centre_um=centre, layers=layers),
+                             {"": fwdfit.Instrument("circular", 40.0, 5.5, PIXEL_UM)},
+                             {"l46": fwdfit.GaussianLine(4.6, 0.15)}, (profile,),
+                             fwdfit.FitSpec(("sample.centre_um",), {}))
+        free = free_parameters(scene)
+        start = estimate_starts(scene, free, [T], fwdfit.build_model(scene, free=[p.name for p in free]))
+        assert start.values["sample.centre_um"] == pytest.approx(found - face_um + 500.0, abs=1e-9)
 
 
 def test_outer_edges_without_a_sample():

@@ -212,10 +212,11 @@ class Fitter:
         self.assemble = assembler(plan_scene, self.free)
         if progress:
             print(f"compiling the model for this geometry ({len(scene.profiles)} profiles, "
-                  f"{len(self.model.groups)} static plans; about {_compile_guess_s(self.model):.0f} s "
-                  "the first time, seconds once cached)", flush=True)
+                  f"{len(self.model.groups)} static plans; once, then loaded from the cache)", flush=True)
         self.predict = Predictor(self.model, self.assemble, len(self.free))
         self.compile_time_s = self.predict.compile_time_s
+        if progress:
+            print(f"model ready in {self.compile_time_s:.1f} s", flush=True)
         self._pixel_um = [scene.instruments[p.instrument].pixel_um for p in scene.profiles]
 
     def objective(self, T=None, sigma=None) -> Objective:
@@ -380,11 +381,6 @@ class Fitter:
             offset += n
         return assess([p.name for p in fitted.profiles], [p.x_um for p in fitted.profiles], z,
                       interfaces, halves, len(self.free))
-
-
-def _compile_guess_s(model) -> float:
-    """A rough first-time compile time (s) on two CPU cores: grows with the static plans."""
-    return 2.0 + 1.5 * len(model.groups)
 
 
 def fit(scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,

@@ -11,6 +11,10 @@ What the profiles show directly, without a model of refraction:
   Beer-Lambert law with the model's own wavelength nodes;
 - the open-beam level (norm) and the per-profile sideways shifts (shift, drift).
 
+A profile narrower than the stack's known width (the sum of the thicknesses the scene
+gives) shows one outer edge at most: that edge (``one_edge``) and the known width
+place the stack, and the thicknesses are the scene's.
+
 Tilt and SLD are not read off here: the global search (``_search``) scans them.
 Units: µm, mm, 1/m, as in the scene keys.
 """
@@ -22,6 +26,7 @@ import math
 
 import numpy as np
 
+from ._errors import FwdfitError
 from ._model import ForwardModel
 from ._parameters import FreeParameter
 from ._scene import Scene
@@ -150,6 +155,42 @@ def refraction_edges(x_um, T, level: float, noise: float) -> tuple[float, float,
 
     return (edge(strong[x_um[strong] < x_um[strong[0]] + _SPIKE_PAIR_UM]),
             edge(strong[x_um[strong] > x_um[strong[-1]] - _SPIKE_PAIR_UM]), level)
+
+
+def one_edge(x_um, T, blur_um: float, pixel_um: float) -> tuple[float, bool, float] | None:
+    """The one interface a profile shows, for a stack wider than the profile: (x_um of it,
+    whether the darker side is to its right, the brighter side's level); None where the
+    profile shows none.
+
+    Where the least-squares split of the profile into two plateaus differs by
+    _STEP_SIGNIFICANCE, the interface is where the running median, walking out from the
+    darker end, falls to half the drop. Else (a nearly transparent sample) it shows by
+    its refraction spikes: half-way between the strongest gain and loss.
+    """
+    noise = max(noise_sigma(T), 1e-6)
+    margin = blur_um + _REFRACTION_MARGIN_UM
+    split = x_um[int(segment(running_median(T, max(1, int(round(_DESPIKE_UM / pixel_um)))), 2)[0])]
+    sides = T[x_um < split - margin], T[x_um > split + margin]
+    if min(len(sides[0]), len(sides[1])) >= 3:
+        left_level, right_level = (float(np.median(side)) for side in sides)
+        step_noise = _MEDIAN_NOISE * noise * math.sqrt(1 / len(sides[0]) + 1 / len(sides[1]))
+    else:
+        left_level = right_level = step_noise = 0.0
+    if abs(left_level - right_level) > _STEP_SIGNIFICANCE * step_noise:
+        sample_right = right_level < left_level
+        level = max(left_level, right_level)
+        edge = _walk_out(x_um, level - running_median(T, max(5, int(round(0.5 * blur_um / pixel_um)))),
+                         0.5 * abs(left_level - right_level), len(T) - 1 if sample_right else 0,
+                         -1 if sample_right else +1)
+    else:
+        deviation = running_median(T, 3) - float(np.median(T))
+        if np.max(np.abs(deviation)) < _SPIKE_SIGNIFICANCE * noise:
+            return None
+        edge = 0.5 * float(x_um[np.argmax(deviation)] + x_um[np.argmin(deviation)])
+        sides = T[x_um < edge - margin], T[x_um > edge + margin]
+        sample_right = bool(min(len(sides[0]), len(sides[1])) and np.median(sides[1]) < np.median(sides[0]))
+        level = float(np.median(T[x_um < edge] if sample_right else T[x_um > edge]))
+    return edge, sample_right, level
 
 
 def balanced_edges(x_um, T, edges, reach_um: float, pixel_um: float
@@ -282,20 +323,24 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     values = {p.name: p.value for p in free}
     profiles = scene.profiles
     sample = scene.sample
-    found = []
+    known_width = sum(l.thickness_um for l in sample.layers if math.isfinite(l.thickness_um))
+    found, one_sided = [], set()
     for i, p in enumerate(profiles):
         pixel = scene.instruments[p.instrument].pixel_um
-        edges = outer_edges(p.x_um, T[i], _blur_um(scene, p), pixel)
-        found.append(edges)
+        if known_width > p.x_um[-1] - p.x_um[0]:
+            one_sided.add(i)
+            found.append(_placed_stack(scene, p, one_edge(p.x_um, T[i], _blur_um(scene, p), pixel)))
+        else:
+            found.append(outer_edges(p.x_um, T[i], _blur_um(scene, p), pixel))
     usable = [i for i, e in enumerate(found) if e is not None]
-    if not usable:  # a sample too transparent to show its plateau in any profile
+    if not usable and not one_sided:  # a sample too transparent to show its plateau in any profile
         found = [refraction_edges(p.x_um, T[i], _open_level(T[i]), max(noise_sigma(T[i]), 1e-6))
                  for i, p in enumerate(profiles)]
         usable = [i for i, e in enumerate(found) if e is not None]
     if not usable:
         return Estimate(values, ())
     balanced = {}  # profiles whose edges the intensity balance refined: (edges, variance µm^2)
-    for i in usable:
+    for i in (i for i in usable if i not in one_sided):
         p = profiles[i]
         refined = balanced_edges(p.x_um, T[i], found[i], refraction_reach_um(scene, p),
                                  scene.instruments[p.instrument].pixel_um)
@@ -340,7 +385,8 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
         distance = np.array([profiles[i].distance_mm for i in usable])
         shift = np.array([centres[i] - centre - profiles[i].shift_um for i in usable])
         values["sample.drift_um_per_mm"] = float(np.polyfit(distance, shift, 1)[0])
-    thickness, seen = _layer_thicknesses(scene, free, T[sharpest], profiles[sharpest], left, width)
+    thickness, seen = _layer_thicknesses(scene, free, T[sharpest], profiles[sharpest], left, width,
+                                         segmented=sharpest not in one_sided)
     names, held = [], []
     for p in free:
         field, index = p.target
@@ -357,13 +403,36 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     return Estimate(values, tuple(names), tuple(held), pinned)
 
 
-def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
+def _placed_stack(scene: Scene, profile, interface: tuple[float, bool, float] | None
+                  ) -> tuple[float, float, float] | None:
+    """(left, right outer edge µm, open level) of a stack wider than the profile, from the one
+    interface it shows (``one_edge``): the scene's interface nearest to it where the scene
+    gives a centre, else the outer edge on the brighter side. The thicknesses are the scene's."""
+    sample = scene.sample
+    unknown = [l.name for l in sample.layers if not math.isfinite(l.thickness_um)]
+    if unknown:
+        raise FwdfitError(f"{scene.path}: profile {profile.name!r} is narrower than the sample: give layer "
+                          f"{unknown[0]!r} a start thickness_um")
+    if interface is None:
+        return None
+    x, sample_right, level = interface
+    faces = np.concatenate([[0.0], np.cumsum([l.thickness_um for l in sample.layers])])  # from the left edge
+    if math.isfinite(sample.centre_um):
+        centre = sample.centre_um + profile.shift_um + sample.drift_um_per_mm * profile.distance_mm
+        left = x - faces[np.argmin(np.abs(centre - 0.5 * faces[-1] + faces - x))]
+    else:
+        left = x if sample_right else x - faces[-1]
+    return left, left + faces[-1], level
+
+
+def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float, segmented: bool = True
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Thickness of every layer (n_layer,) µm at tilt 0, summing to the projected width, and
     whether the segmentation saw it (n_layer,) bool.
 
-    Free thicknesses come from the segmentation where its steps are significant,
-    else from the scene's value, else an equal share of what the fixed layers leave.
+    Free thicknesses come from the segmentation (unless ``segmented`` is False: the profile
+    shows part of the stack) where its steps are significant, else from the scene's value,
+    else an equal share of what the fixed layers leave.
     """
     layers = scene.sample.layers
     free_thickness = {i for p in free if p.target[0] == "thickness_um" for i in p.target[1]}
@@ -378,7 +447,7 @@ def _layer_thicknesses(scene: Scene, free, T, profile, left: float, width: float
     present = [i for i, l in enumerate(layers) if l.thickness_um > 0 or i in free_thickness
                or math.isnan(l.thickness_um)]
     found = np.full(len(layers), np.nan)
-    if len(binned) > 2 * len(present):
+    if segmented and len(binned) > 2 * len(present):
         bounds = segment(binned, len(present))
         edges = np.concatenate([[0], bounds, [len(binned)]])
         levels = [binned[a:b].mean() for a, b in zip(edges[:-1], edges[1:])]

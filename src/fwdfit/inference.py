@@ -10,7 +10,7 @@ unit, default, bounds, step, where the model takes it).
 (T rows for free values), compiled once as one program per group of profiles and kept
 between fits (``forget_compiled`` drops this process's copies, ``cache_dir`` is the
 on-disk cache); ``levenberg_marquardt`` is the
-default solver of residual rows; ``outer_edges``, ``refraction_edges``, ``segment`` and
+default solver of residual rows; ``outer_edges``, ``one_edge``, ``refraction_edges``, ``segment`` and
 ``attenuation_from_plateau`` read starts off the data; ``assess`` and ``runs_z`` are the
 quality gate; ``covariance`` and ``errors_and_correlation`` the uncertainty from the
 Jacobian; ``diagnostics`` the sampler's effective sample sizes and R-hat.
@@ -40,6 +40,7 @@ from ._sample import diagnostics as diagnostics
 from ._starts import attenuation_from_plateau as attenuation_from_plateau
 from ._starts import balanced_edges as balanced_edges
 from ._starts import estimate as estimate_starts
+from ._starts import one_edge as one_edge
 from ._starts import outer_edges as outer_edges
 from ._starts import refraction_edges as refraction_edges
 from ._starts import segment as segment
