@@ -5,12 +5,13 @@ Gaussian noise; T_err = the added noise and the reference's own error in quadrat
 Each dataset is fitted from the scene's natural first guess (tilt 0, thicknesses and
 SLDs off, as a user types them) and with the start values of the free parameters
 deleted from the scene. Required (the fitting issue's acceptance): thicknesses within
-2 µm, tilt within 0.02°, SLDs within 5 %, reduced chi-square in [0.8, 1.3], T_att within
+2 µm (10 % below 20 µm), tilt within 0.02°, SLDs within 5 %, reduced chi-square in [0.8, 1.3], T_att within
 RMS 0.003 of the reference's attenuation-only profile, exit status 0. A dataset with a
 layer the scene lacks must end in exit status 3 and one line naming a profile and a
 region. Random starts drawn uniformly in a wide box must all reach the best chi-square.
 
-Runtime on 2 CPU cores: about 4 minutes (each CLI fit compiles its model).
+The thin skin (2 µm on Al, tracer data with profiles over one edge) is fitted from the guess:
+thickness within 10 %. Runtime on 2 CPU cores: about 6 minutes (each CLI fit compiles its model).
 """
 
 from __future__ import annotations
@@ -45,6 +46,11 @@ OXIDE_GUESS = {"sample.tilt_deg": 0.0, "sample.centre_um": 0.0,
                "layers.Al.thickness_um": 950.0, "layers.oxide2_left.sld_e6_per_A2": 3.0,
                "layers.oxide1_left.sld_e6_per_A2": 3.0, "layers.oxide2_left.mu_per_m": 15.0,
                "layers.oxide1_left.mu_per_m": 20.0, "layers.Al.mu_per_m": 2.0}
+SKIN_TRUTH = {"sample.tilt_deg": 0.24, "sample.centre_um": 0.0, "layers.skin_l.thickness_um": 2.0,
+              "layers.skin_l.sld_e6_per_A2": 4.5}
+SKIN_GUESS = {"sample.tilt_deg": 0.0, "sample.centre_um": 0.0, "layers.skin_l.thickness_um": 1.5,
+              "layers.skin_l.sld_e6_per_A2": 4.0}
+SKIN = RAYTRACE.parent / "raytrace_thin" / "skin2_tilt0.24"
 DATASETS = {
     "al_boa": (MCSTAS / "scene_boa_tilt0.24.toml", MCSTAS,
                ["boa_al_tilt0.24_d01.1mm", "boa_al_tilt0.24_d08.5mm", "boa_al_tilt0.24_d34.4mm"],
@@ -54,6 +60,8 @@ DATASETS = {
                  "icon_al_tilt0.24_l4.6A"], AL_TRUTH, AL_GUESS),
     "oxide": (RAYTRACE / "oxide5_boa" / "scene.toml", RAYTRACE / "oxide5_boa",
               ["d01.1mm", "d12.2mm", "d34.4mm"], OXIDE_TRUTH, OXIDE_GUESS),
+    # a 2 µm skin on 1 mm of Al, the profiles 144-360 µm wide over its left edge only
+    "skin": (SKIN / "scene.toml", SKIN, ["boa_d01.1mm", "boa_d10.0mm", "icon_d01.1mm"], SKIN_TRUTH, SKIN_GUESS),
 }
 
 
@@ -106,7 +114,7 @@ def _check_fit(result: dict, out: Path, dataset: str):
     values = {name: entry["value"] for name, entry in result["parameters"].items()}
     for name, value in values.items():
         if name.endswith("thickness_um"):
-            assert abs(value - truth[name]) < 2.0, (name, value)
+            assert abs(value - truth[name]) < min(2.0, 0.1 * truth[name]), (name, value)
         elif name == "sample.tilt_deg":
             assert abs(value - truth[name]) < 0.02, (name, value)
         elif name.endswith("sld_e6_per_A2"):
@@ -118,8 +126,9 @@ def _check_fit(result: dict, out: Path, dataset: str):
         assert rms(fitted["T_att"] - load_reference(case_dir, name)["T_att"]) < 0.003, name
 
 
-CASES = [pytest.param(dataset, start, marks=pytest.mark.slow) if dataset == "oxide" else (dataset, start)
-         for dataset in DATASETS for start in ("guess", "none")]
+# a window narrower than the sample needs the thicknesses' starts (test_a_narrow_window_needs_start_thicknesses)
+CASES = [pytest.param(dataset, start, marks=pytest.mark.slow) if dataset in ("oxide", "skin") else (dataset, start)
+         for dataset in DATASETS for start in ("guess", "none") if (dataset, start) != ("skin", "none")]
 
 
 @pytest.mark.parametrize("dataset,start", CASES)
@@ -130,6 +139,15 @@ def test_plain_command_finds_the_truth(dataset, start, tmp_path, capsys):
     status, err, result = _cli_fit(scene, tmp_path / "out", capsys)
     assert status == 0, err
     _check_fit(result, tmp_path / "out", dataset)
+
+
+def test_a_narrow_window_needs_start_thicknesses(tmp_path, capsys):
+    """The skin's profiles show one edge of the sample: without a start thickness for the skin
+    the fit stops with exit status 1 and one line naming the layer, writing nothing."""
+    scene = measured_scene(tmp_path, "skin", None)
+    status, err, result = _cli_fit(scene, tmp_path / "out", capsys)
+    assert status == 1 and result is None
+    assert err.strip().count("\n") == 0 and "'skin_l' a start thickness_um" in err, err
 
 
 @pytest.mark.slow

@@ -326,12 +326,12 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     known_width = sum(l.thickness_um for l in sample.layers if math.isfinite(l.thickness_um))
     found, one_sided = [], set()
     for i, p in enumerate(profiles):
-        pixel = scene.instruments[p.instrument].pixel_um
-        if known_width > p.x_um[-1] - p.x_um[0]:
+        pixel, blur = scene.instruments[p.instrument].pixel_um, _blur_um(scene, p)
+        edges = outer_edges(p.x_um, T[i], blur, pixel)
+        if known_width > p.x_um[-1] - p.x_um[0] and not _both_edges(edges, p.x_um, known_width, blur):
             one_sided.add(i)
-            found.append(_placed_stack(scene, p, one_edge(p.x_um, T[i], _blur_um(scene, p), pixel)))
-        else:
-            found.append(outer_edges(p.x_um, T[i], _blur_um(scene, p), pixel))
+            edges = _placed_stack(scene, p, one_edge(p.x_um, T[i], blur, pixel))
+        found.append(edges)
     usable = [i for i, e in enumerate(found) if e is not None]
     if not usable and not one_sided:  # a sample too transparent to show its plateau in any profile
         found = [refraction_edges(p.x_um, T[i], _open_level(T[i]), max(noise_sigma(T[i]), 1e-6))
@@ -401,6 +401,16 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     _attenuations(scene, free, T, placed, thickness, model, values)
     pinned = tuple(p.name for p in free if p.target[0] in _PINNED_FIELDS and p.name not in held)
     return Estimate(values, tuple(names), tuple(held), pinned)
+
+
+def _both_edges(edges, x_um, width_um: float, blur_um: float) -> bool:
+    """Whether ``outer_edges`` found a stack's two edges in a profile narrower than the scene's
+    ``width_um``: at least half that width apart, neither at an end of the profile."""
+    if edges is None:
+        return False
+    margin = blur_um + _REFRACTION_MARGIN_UM
+    return (edges[1] - edges[0] >= 0.5 * width_um and edges[0] > x_um[0] + margin
+            and edges[1] < x_um[-1] - margin)
 
 
 def _placed_stack(scene: Scene, profile, interface: tuple[float, bool, float] | None
