@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import statistics
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -570,6 +571,21 @@ def _windowed(group: ProfileGroup, first_edge_um, n_bins: int, sign, landing_um,
             _place(scale * jnp.diff(C_att, axis=1), start, n_bins))
 
 
+class _ThinFace(NamedTuple):
+    """One face of a coupled thin layer B between A and C, in one crossing direction."""
+
+    sign: float  # +1 rays cross it left to right, -1 mirrored
+    boundary: int  # its boundary index
+    before: int  # the media on either side (indices as in ``Interface``)
+    after: int
+    width_um: Array  # B's width
+    forward: bool  # the first face the rays meet (else the second)
+    reflect_k: Array  # (n_lam,) as in ``_thin.face_limits``
+    guided_rad: Array  # (n_lam,) below it rays of B are guided (0 for the first face)
+    outer: int  # A, the medium the rays come from
+    inner: int  # B
+
+
 def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_um, wavelength_weight,
                 depth_um, delta_per_sld, first_edge_um):
     """(T, T_att) plus the kernels of the coupled thin layers (``_thin``).
@@ -588,19 +604,19 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         for sign, first, second, (a, b, c) in ((1.0, layer.layer - 1, layer.layer, (layer.left, layer.layer, layer.right)),
                                                (-1.0, layer.layer, layer.layer - 1, (layer.right, layer.layer, layer.left))):
             trapped = _thin.root(jnp.minimum(k([b], [a]), k([b], [c]))[0])  # guided in B below
-            faces += [(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped,
-                       (a, b)), (sign, second, b, c, w, False, k([b], [c])[0], trapped, (a, b))]
+            faces += [_ThinFace(sign, first, a, b, w, True, jnp.maximum(k([a], [b]), k([a], [c]))[0], 0.0 * trapped, a, b),
+                      _ThinFace(sign, second, b, c, w, False, k([b], [c])[0], trapped, a, b)]
             through.append((sign, first, second, a, b, c, w, trapped))
 
     def place(sign, landing_um, cumulative):
         return _windowed(group, first_edge_um, T.shape[0], sign, landing_um, cumulative)
 
-    sign = jnp.asarray([f[0] for f in faces], boundary.dtype)
-    position, before, after = (np.asarray([f[i] for f in faces]) for i in (1, 2, 3))
+    sign = jnp.asarray([f.sign for f in faces], boundary.dtype)
+    position, before, after, outer, inner = (np.asarray([getattr(f, name) for f in faces])
+                                             for name in ("boundary", "before", "after", "outer", "inner"))
     b = boundary[position]
-    outer, inner = (np.asarray([f[8][i] for f in faces]) for i in (0, 1))  # A and B of each face's layer
-    restrict = (jnp.stack([f[4] for f in faces]), jnp.asarray([f[5] for f in faces]),
-                jnp.stack([f[6] for f in faces]), jnp.stack([f[7] for f in faces]),
+    restrict = (jnp.stack([f.width_um for f in faces]), jnp.asarray([f.forward for f in faces]),
+                jnp.stack([f.reflect_k for f in faces]), jnp.stack([f.guided_rad for f in faces]),
                 k(outer, inner), mu[:, outer].T)
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
