@@ -147,7 +147,7 @@ def test_a_narrow_window_needs_start_thicknesses(tmp_path, capsys):
     the fit stops with exit status 1 and one line naming the layer, writing nothing."""
     scene = measured_scene(tmp_path, "skin", None)
     status, err, result = _cli_fit(scene, tmp_path / "out", capsys)
-    assert status == 1 and result is None
+    assert status == 1 and result is None and not (tmp_path / "out").exists()
     assert err.strip().count("\n") == 0 and "'skin_l' a start thickness_um" in err, err
 
 

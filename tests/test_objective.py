@@ -95,18 +95,18 @@ class _RecordingBlock(LayeredBlock):
         self.called = set()
 
     def __getattribute__(self, name):
-        if name in ("build_model", "estimate", "at_tilts", "interfaces"):
+        if name in ("build_model", "check_data", "estimate", "at_tilts", "interfaces"):
             object.__getattribute__(self, "called").add(name)
         return object.__getattribute__(self, name)
 
 
 def test_the_fit_reaches_the_shape_through_the_geometry(scene_path, default_fit):
-    """Every shape-specific step of a fit (model, starts, the scan's tilts, the quality gate's
+    """Every shape-specific step of a fit (model, data check, starts, the scan's tilts, the quality gate's
     edge regions) goes through the geometry passed in; the layered block's edge regions lie
     where the tilted faces project: centre -+ t / (2 cos tilt), moved by distance x tan(tilt)."""
     geometry = _RecordingBlock()
     result = fwdfit.Fitter(scene_path, geometry=geometry)()
-    assert geometry.called == {"build_model", "estimate", "at_tilts", "interfaces"}
+    assert geometry.called == {"build_model", "check_data", "estimate", "at_tilts", "interfaces"}
     np.testing.assert_allclose(result.values, default_fit.values, rtol=0, atol=0)
     scene = result.scene
     faces, half_width_um = LayeredBlock().interfaces(scene, scene.profiles[0])

@@ -207,6 +207,7 @@ class Fitter:
         tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)
         plan_scene = _plan_scene(scene, self.free)
         self.geometry = geometry_of(scene) if geometry is None else geometry
+        self.geometry.check_data(scene, self._data[0])
         self.model = self.geometry.build_model(plan_scene, accuracy, [p.name for p in self.free],
                                                None if tilt is None else (tilt.low, tilt.high))
         self.assemble = assembler(plan_scene, self.free)

@@ -1,11 +1,11 @@
 """The sample's shape behind one seam: what the fitter, the quality gate and the outputs ask of it.
 
-A geometry turns a scene into its forward model, reads starting values off measured
-profiles, moves a candidate to a trial tilt for the global scan, and says where its
+A geometry turns a scene into its forward model, refuses measured profiles it cannot
+read starts off, reads starting values off measured profiles, moves a candidate to a trial tilt for the global scan, and says where its
 interfaces land on each profile (the quality gate's edge regions). The layered block
 (flat layers side by side along x, tilted about the vertical axis: ``_plan``/``_model``,
 ``_starts``, the exact tracer ``_reference``) is the one geometry today. A second shape
-(concentric cylinder shells, say) implements the same four methods in its own modules and
+(concentric cylinder shells, say) implements the same five methods in its own modules and
 is returned by ``geometry_of`` for its scenes; the fitter, the scene reader's generic
 parts, the objective and the outputs stay as they are.
 """
@@ -23,7 +23,7 @@ from ._parameters import FreeParameter
 from ._plan import build_model
 from ._quality import edge_half_width_um
 from ._scene import Profile, Scene
-from ._starts import Estimate, estimate
+from ._starts import Estimate, estimate, narrow_profiles
 
 
 class Geometry(Protocol):
@@ -36,6 +36,10 @@ class Geometry(Protocol):
     def estimate(self, scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
                  model: ForwardModel) -> Estimate:
         """Starting values read off the measured profiles T (one array per profile)."""
+
+    def check_data(self, scene: Scene, T: list[np.ndarray]) -> None:
+        """Refuse, with FwdfitError, measured profiles T whose starts ``estimate`` cannot read
+        (called before the model compiles)."""
 
     def at_tilts(self, free: tuple[FreeParameter, ...], estimate: Estimate, row: np.ndarray,
                  tilts_deg: np.ndarray) -> np.ndarray:
@@ -55,6 +59,10 @@ class LayeredBlock:
 
     def estimate(self, scene, free, T, model):
         return estimate(scene, free, T, model)
+
+    def check_data(self, scene, T):
+        """Profiles narrower than the stack need every layer's thickness (``narrow_profiles``)."""
+        narrow_profiles(scene, T)
 
     def at_tilts(self, free, estimate, row, tilts_deg):
         """The data pin each layer's projected width t / cos(tilt): thicknesses follow the tilt."""

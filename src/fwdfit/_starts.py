@@ -323,15 +323,12 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     values = {p.name: p.value for p in free}
     profiles = scene.profiles
     sample = scene.sample
-    known_width = sum(l.thickness_um for l in sample.layers if math.isfinite(l.thickness_um))
-    found, one_sided = [], set()
+    one_sided = narrow_profiles(scene, T)
+    found = []
     for i, p in enumerate(profiles):
         pixel, blur = scene.instruments[p.instrument].pixel_um, _blur_um(scene, p)
-        edges = outer_edges(p.x_um, T[i], blur, pixel)
-        if known_width > p.x_um[-1] - p.x_um[0] and not _both_edges(edges, p.x_um, known_width, blur):
-            one_sided.add(i)
-            edges = _placed_stack(scene, p, one_edge(p.x_um, T[i], blur, pixel))
-        found.append(edges)
+        found.append(_placed_stack(scene, p, one_edge(p.x_um, T[i], blur, pixel)) if i in one_sided
+                     else outer_edges(p.x_um, T[i], blur, pixel))
     usable = [i for i, e in enumerate(found) if e is not None]
     if not usable and not one_sided:  # a sample too transparent to show its plateau in any profile
         found = [refraction_edges(p.x_um, T[i], _open_level(T[i]), max(noise_sigma(T[i]), 1e-6))
@@ -403,6 +400,25 @@ def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
     return Estimate(values, tuple(names), tuple(held), pinned)
 
 
+def narrow_profiles(scene: Scene, T: list[np.ndarray]) -> set[int]:
+    """Indices of the profiles that show part of the stack only: narrower than the sum of the
+    scene's thicknesses, without two outer edges (``outer_edges``) half that apart. Raises
+    FwdfitError where such a profile meets a layer without a thickness (nothing to place it by)."""
+    known_width = sum(l.thickness_um for l in scene.sample.layers if math.isfinite(l.thickness_um))
+    narrow = set()
+    for i, p in enumerate(scene.profiles):
+        if known_width > p.x_um[-1] - p.x_um[0]:
+            blur = _blur_um(scene, p)
+            if not _both_edges(outer_edges(p.x_um, T[i], blur, scene.instruments[p.instrument].pixel_um),
+                               p.x_um, known_width, blur):
+                narrow.add(i)
+    unknown = [l.name for l in scene.sample.layers if not math.isfinite(l.thickness_um)]
+    if narrow and unknown:
+        raise FwdfitError(f"{scene.path}: profile {scene.profiles[min(narrow)].name!r} is narrower than the sample: "
+                          f"give layer {unknown[0]!r} a start thickness_um")
+    return narrow
+
+
 def _both_edges(edges, x_um, width_um: float, blur_um: float) -> bool:
     """Whether ``outer_edges`` found a stack's two edges in a profile narrower than the scene's
     ``width_um``: at least half that width apart, neither at an end of the profile."""
@@ -419,10 +435,6 @@ def _placed_stack(scene: Scene, profile, interface: tuple[float, bool, float] | 
     interface it shows (``one_edge``): the scene's interface nearest to it where the scene
     gives a centre, else the outer edge on the brighter side. The thicknesses are the scene's."""
     sample = scene.sample
-    unknown = [l.name for l in sample.layers if not math.isfinite(l.thickness_um)]
-    if unknown:
-        raise FwdfitError(f"{scene.path}: profile {profile.name!r} is narrower than the sample: give layer "
-                          f"{unknown[0]!r} a start thickness_um")
     if interface is None:
         return None
     x, sample_right, level = interface
