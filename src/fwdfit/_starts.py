@@ -12,8 +12,8 @@ What the profiles show directly, without a model of refraction:
 - the open-beam level (norm) and the per-profile sideways shifts (shift, drift).
 
 A profile narrower than the stack's known width (the sum of the thicknesses the scene
-gives) shows one outer edge at most: that edge (``one_edge``) and the known width
-place the stack, and the thicknesses are the scene's.
+gives; ``narrow_profiles``) shows one interface at most (``one_edge``): the scene's face
+nearest to it places the stack, and the thicknesses are the scene's.
 
 Tilt and SLD are not read off here: the global search (``_search``) scans them.
 Units: µm, mm, 1/m, as in the scene keys.
