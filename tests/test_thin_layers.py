@@ -82,3 +82,4 @@ def test_the_command_line_prints_the_model_warning_as_one_line(tmp_path, capsys)
     assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if line]
     assert len(lines) == 1 and lines[0].startswith("warning: layer 'skin'"), lines
+    assert (tmp_path / "out" / "warnings.txt").read_text() == lines[0].removeprefix("warning: ") + "\n"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
 
 import equinox as eqx
@@ -41,8 +42,12 @@ def simulate(scene: Scene | str | Path, accuracy: float | None = None) -> list[S
     return profiles
 
 
-def write_simulation(profiles: list[SimulatedProfile], out_dir: Path) -> None:
-    """Write ``out_dir/<name>.csv`` with columns x_um,T,T_att for each profile (all or none)."""
+def write_simulation(profiles: list[SimulatedProfile], out_dir: Path, notes: Sequence[str] = ()) -> None:
+    """Write ``out_dir/<name>.csv`` with columns x_um,T,T_att for each profile and, if there are
+    any, the model's notes (its ``ModelWarning`` messages) one per line to ``warnings.txt``
+    (all or none)."""
     with staged_folder(out_dir) as staging:
         for p in profiles:
             write_columns(staging / f"{p.name}.csv", {"x_um": p.x_um, "T": p.T, "T_att": p.T_att})
+        if notes:
+            (staging / "warnings.txt").write_text("".join(f"{note}\n" for note in notes))

@@ -72,8 +72,13 @@ def _run_simulate(args) -> None:
     check_paths([args.scene], out_dir=args.out)
     _enable_float64()
     scene = load_scene(args.scene)
-    profiles = simulate(scene, args.accuracy)
-    write_simulation(profiles, Path(args.out))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default", ModelWarning)
+        profiles = simulate(scene, args.accuracy)
+    for warning in caught:
+        _print_warning(warning.message, warning.category, warning.filename, warning.lineno)
+    write_simulation(profiles, Path(args.out),
+                     [str(w.message) for w in caught if issubclass(w.category, ModelWarning)])
     print(f"wrote {len(profiles)} profile(s) to {args.out}")
 
 
