@@ -1,8 +1,9 @@
 """The sample's shape behind one seam: what the fitter, the quality gate and the outputs ask of it.
 
 A geometry turns a scene into its forward model, refuses measured profiles it cannot
-read starts off, reads starting values off measured profiles, moves a candidate to a trial tilt for the global scan, and says where its
-interfaces land on each profile (the quality gate's edge regions). The layered block
+read starts off, reads starting values off measured profiles, moves a candidate to a
+trial tilt for the global scan, and says where its interfaces land on each profile (the
+quality gate's edge regions). The layered block
 (flat layers side by side along x, tilted about the vertical axis: ``_plan``/``_model``,
 ``_starts``, the exact tracer ``_reference``) is the one geometry today. A second shape
 (concentric cylinder shells, say) implements the same five methods in its own modules and
