@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from . import _registry as registry
-from ._errors import FwdfitError
+from ._errors import FwdfitError, ModelWarning
 from ._least_squares import levenberg_marquardt
 from ._objective import Objective
 from ._parameters import LAYER_FIELDS, FreeParameter, assembler, free_parameters
@@ -91,6 +91,7 @@ class FitResult:
     quality: Quality
     start: dict  # free name -> starting value read off the data (NaN where none)
     n_evaluations: int  # model evaluations of the fit (scan, solver, errors)
+    model_warnings: tuple[str, ...] = ()  # the model's notes when built (``ModelWarning``: a thin layer left independent)
 
     @property
     def chi2_reduced(self) -> float:
@@ -208,8 +209,13 @@ class Fitter:
         plan_scene = _plan_scene(scene, self.free)
         self.geometry = geometry_of(scene) if geometry is None else geometry
         self.geometry.check_data(scene, self._data[0])
-        self.model = self.geometry.build_model(plan_scene, accuracy, [p.name for p in self.free],
-                                               None if tilt is None else (tilt.low, tilt.high))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ModelWarning)
+            self.model = self.geometry.build_model(plan_scene, accuracy, [p.name for p in self.free],
+                                                   None if tilt is None else (tilt.low, tilt.high))
+        for caught_warning in caught:  # said as usual, and kept for the result
+            warnings.warn(caught_warning.message, caught_warning.category, stacklevel=2)
+        self.model_warnings = tuple(str(w.message) for w in caught if issubclass(w.category, ModelWarning))
         self.assemble = assembler(plan_scene, self.free)
         if progress:
             print(f"compiling the model for this geometry ({len(scene.profiles)} profiles, "
@@ -367,7 +373,7 @@ class Fitter:
         return FitResult(tuple(p.name for p in free), values, errors, correlation, chi2, dof, converged,
                          message, steps, self.compile_time_s, 0.0, tuple(profiles), tuple(notes),
                          sigma_from_data, fitted, solution.chi2, quality,
-                         dict(guess.values), 0)
+                         dict(guess.values), 0, self.model_warnings)
 
     def _quality(self, data, sigma, T_model, fitted: Scene) -> Quality:
         """The quality gate on the unsmoothed residuals, with edge regions at every interface

@@ -46,6 +46,7 @@ def result_dict(result: FitResult) -> dict:
         "solve_time_s": result.wall_time_s,
         "wall_time_s": result.compile_time_s + result.wall_time_s,
         "warnings": list(result.warnings),
+        "model_warnings": list(result.model_warnings),
         "versions": {"fwdfit": __version__, "jax": jax.__version__, "equinox": equinox.__version__,
                      "optimistix": optimistix.__version__, "python": platform.python_version()},
     }

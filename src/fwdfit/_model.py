@@ -495,6 +495,8 @@ def _in_chunks(one, args, chunk: int):
     at a time: a scan over chunks of a vmap, one traced body whatever the count. The items
     are padded with copies of the last to whole chunks, their results dropped."""
     n = jax.tree_util.tree_leaves(args)[0].shape[0]
+    if n == 1:  # not batched: a lax.cond inside skips its other branch
+        return jax.tree_util.tree_map(lambda x: x[None], one(jax.tree_util.tree_map(lambda x: x[0], args)))
     if chunk >= n:
         return jax.vmap(one)(args)
     n_chunks = -(-n // chunk)
@@ -608,9 +610,6 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
                       _ThinFace(sign, second, b, c, w, False, k([b], [c])[0], trapped, a, b)]
             through.append((sign, first, second, a, b, c, w, trapped))
 
-    def place(sign, landing_um, cumulative):
-        return _windowed(group, first_edge_um, T.shape[0], sign, landing_um, cumulative)
-
     sign = jnp.asarray([f.sign for f in faces], boundary.dtype)
     position, before, after, outer, inner = (np.asarray([getattr(f, name) for f in faces])
                                              for name in ("boundary", "before", "after", "outer", "inner"))
@@ -622,10 +621,7 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after),
              jnp.zeros_like(b))  # sharp faces
-    kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, None, 0, 0))
-    dT, dT_att = place(sign, landing, lambda edges: kernel(group, sides, distance_um, wavelength_weight,
-                                                           depth_um, True, False, edges, restrict))
-    T, T_att = T + dT, T_att + dT_att
+    face_terms = (sign, landing, sides, restrict)
 
     sign = jnp.asarray([t[0] for t in through], boundary.dtype)
     first, second, a, b_, c = (np.asarray([t[i] for t in through]) for i in (1, 2, 3, 4, 5))
@@ -633,19 +629,52 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         (boundary[second], slope, z_mid[first], 2.0 * (sld[c] - sld[a]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, a].T, mu[:, b_].T, mu[:, c].T,
              k(a, b_), k(a, c), jnp.stack([t[6] for t in through]))
-    kernel = jax.vmap(lambda side, edges: _thin.through_kernel(group, side, distance_um, wavelength_weight,
-                                                               depth_um, edges, _kink_aligned_depths))
-    dT, dT_att = place(sign, landing, lambda edges: kernel(sides, edges))
-    T, T_att = T + dT, T_att + dT_att
+    through_terms = (sign, landing, sides)
 
     sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, b_].T, jnp.stack([t[7] for t in through]),
              jnp.stack([t[6] for t in through]))
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (0.5 * (boundary[first] + boundary[second]), slope, z_mid[first], 0.0 * sign)), sign, distance_um)
-    kernel = jax.vmap(lambda side, edges: _thin.guided_kernel(group, side, distance_um, wavelength_weight,
-                                                              depth_um, edges))
-    dT, _ = place(sign, landing, lambda edges: kernel(sides, edges))
-    return T + dT, T_att
+    guided_terms = (sign, landing, sides)
+
+    def place(sign, landing_um, cumulative):
+        return _windowed(group, first_edge_um, T.shape[0], sign, landing_um, cumulative)
+
+    def layer_terms(terms):  # one layer's (4 faces, 2 through, 2 guided) -> (dT, dT_att) (n_bins,)
+        (sign, landing, sides, restrict), through, guided = terms
+        kernel = jax.vmap(_crossing_kernel, in_axes=(None, 0, None, None, None, None, None, 0, 0))
+        dT, dT_att = place(sign, landing, lambda edges: kernel(group, sides, distance_um, wavelength_weight,
+                                                               depth_um, True, False, edges, restrict))
+        sign, landing, sides = through
+        kernel = jax.vmap(lambda side, edges: _thin.through_kernel(group, side, distance_um, wavelength_weight,
+                                                                   depth_um, edges, _kink_aligned_depths))
+        more_T, more_att = place(sign, landing, lambda edges: kernel(sides, edges))
+        sign, landing, sides = guided
+        kernel = jax.vmap(lambda side, edges: _thin.guided_kernel(group, side, distance_um, wavelength_weight,
+                                                                  depth_um, edges))
+        guided_T, _ = place(sign, landing, lambda edges: kernel(sides, edges))
+        return dT + more_T + guided_T, dT_att + more_att
+
+    def reached(terms):  # nothing where no window of the layer's rays reaches the profile
+        landing = jnp.concatenate([side[1] for side in terms])
+        zero = jnp.zeros_like(T)
+        return jax.lax.cond(_reaches(group, first_edge_um, landing), layer_terms, lambda _: (zero, zero), terms)
+
+    # a layer at a time on a CPU, where lax.cond skips a layer outside the profile (batched, it
+    # would evaluate both branches)
+    per_layer = jax.tree_util.tree_map(lambda x: x.reshape((len(thin), -1) + x.shape[1:]),
+                                       (face_terms, through_terms, guided_terms))
+    dT, dT_att = _in_chunks(reached, per_layer, 1 if jax.default_backend() == "cpu" else len(thin))
+    return T + jnp.sum(dT, axis=0), T_att + jnp.sum(dT_att, axis=0)
+
+
+def _reaches(group: ProfileGroup, first_edge_um, landing_um):
+    """Whether any kernel window centred at ``landing_um`` (n_side,) overlaps the profile's edges.
+
+    A window entirely beyond them adds nothing: its rays land beyond every edge (evaluated,
+    the kernel leaves only the drift of its depth quadrature with the edge there, < 1e-6)."""
+    centre = (landing_um - first_edge_um) / group.bin_um
+    return jnp.any((centre + group.window + 1 >= 0) & (centre - group.window - 1 <= group.n_edges - 1))
 
 
 def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):
