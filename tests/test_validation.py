@@ -257,8 +257,8 @@ def _fake_result(profiles, value: float, scene=None):
         names=("sample.tilt_deg",), values=np.array([value]), errors=np.array([0.01]), correlation=np.eye(1),
         chi2=20.0, dof=20, chi2_reduced=1.0, chi2_per_start=np.array([20.0]), sigma_from_data=False,
         converged=True, accepted=True, message="", quality=quality, start={"sample.tilt_deg": 0.0},
-        n_steps=3, n_evaluations=10, compile_time_s=0.0, wall_time_s=0.0, warnings=(), profiles=profiles,
-        scene=scene)
+        n_steps=3, n_evaluations=10, compile_time_s=0.0, wall_time_s=0.0, warnings=(), model_warnings=(),
+        profiles=profiles, scene=scene)
 
 
 def test_write_fit_refuses_non_finite_values(tmp_path):

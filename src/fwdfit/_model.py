@@ -490,22 +490,46 @@ def _per_chunk(n: int, elements_each: int) -> int:
     return max(1, min(n, _CPU_CHUNK_ELEMENTS // max(elements_each, 1)))
 
 
-def _in_chunks(one, args, chunk: int):
+def _in_chunks(one, args, chunk: int, needed=None):
     """``one`` (one item's args -> arrays) over the leading axis of args, ``chunk`` items
     at a time: a scan over chunks of a vmap, one traced body whatever the count. The items
-    are padded with copies of the last to whole chunks, their results dropped."""
+    are padded with copies of the last to whole chunks, their results dropped.
+
+    needed (n,) bool, optional: the results of the items not needed are zeros, and a chunk
+    without a needed item is not evaluated (``lax.cond``; where all items run at once,
+    batched, they are evaluated and then zeroed)."""
+    tree_map = jax.tree_util.tree_map
     n = jax.tree_util.tree_leaves(args)[0].shape[0]
-    if n == 1:  # not batched: a lax.cond inside skips its other branch
-        return jax.tree_util.tree_map(lambda x: x[None], one(jax.tree_util.tree_map(lambda x: x[0], args)))
-    if chunk >= n:
-        return jax.vmap(one)(args)
+    if 1 < n <= chunk:
+        out = jax.vmap(one)(args)
+        return out if needed is None else _zeroed(out, needed)
     n_chunks = -(-n // chunk)
     chunk = -(-n // n_chunks)  # the fewest padded items for that many chunks
-    if n_chunks * chunk > n:
-        take = np.minimum(np.arange(n_chunks * chunk), n - 1)
-        args = jax.tree_util.tree_map(lambda x: x[take], args)
-    out = jax.lax.map(one, args, batch_size=None if chunk == 1 else chunk)
-    return jax.tree_util.tree_map(lambda x: x[:n], out)
+    take = np.minimum(np.arange(n_chunks * chunk), n - 1)
+    chunks = tree_map(lambda x: x[take].reshape((n_chunks, chunk) + x.shape[1:]), args)
+    keep = None if needed is None else needed[take].reshape(n_chunks, chunk)
+    if chunk > 1:
+        run = jax.vmap(one)
+    else:  # not batched: a lax.cond inside ``one`` skips its other branch too
+        run = lambda items: tree_map(lambda x: x[None], one(tree_map(lambda x: x[0], items)))
+
+    def body(items, keep):  # one chunk (chunk, ...) -> its results
+        if keep is None:
+            return run(items)
+        shapes = jax.eval_shape(run, items)
+        return jax.lax.cond(jnp.any(keep), lambda a: _zeroed(run(a), keep),
+                            lambda a: tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), items)
+
+    if n_chunks == 1:
+        out = tree_map(lambda x: x[None], body(*tree_map(lambda x: x[0], (chunks, keep))))
+    else:
+        out = jax.lax.map(lambda c: body(*c), (chunks, keep))
+    return tree_map(lambda x: x.reshape((n_chunks * chunk,) + x.shape[2:])[:n], out)
+
+
+def _zeroed(out, keep):
+    """The results ``out`` (each (n, ...)) with the rows where ``keep`` (n,) is False zeroed."""
+    return jax.tree_util.tree_map(lambda x: jnp.where(keep.reshape(keep.shape + (1,) * (x.ndim - 1)), x, 0), out)
 
 
 def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, distance_mm, shift_um,
@@ -552,7 +576,8 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
                                      refracting=refracting, rough=rough)
         chunk = _per_chunk(len(position), _side_elements(group))
         dT, dT_att = _windowed(group, first_edge_um, T.shape[0], sign, landing_um, lambda window_edges: _in_chunks(
-            lambda a: one_side(a[0], edges_um=a[1]), (sides, window_edges), chunk))
+            lambda a: one_side(a[0], edges_um=a[1]), (sides, window_edges), chunk,
+            _reaching(group, first_edge_um, landing_um)))
         T, T_att = T + dT, T_att + dT_att
     return T, T_att
 
@@ -655,26 +680,22 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
         guided_T, _ = place(sign, landing, lambda edges: kernel(sides, edges))
         return dT + more_T + guided_T, dT_att + more_att
 
-    def reached(terms):  # nothing where no window of the layer's rays reaches the profile
-        landing = jnp.concatenate([side[1] for side in terms])
-        zero = jnp.zeros_like(T)
-        return jax.lax.cond(_reaches(group, first_edge_um, landing), layer_terms, lambda _: (zero, zero), terms)
-
-    # a layer at a time on a CPU, where lax.cond skips a layer outside the profile (batched, it
-    # would evaluate both branches)
+    # a layer at a time on a CPU, so that a layer none of whose windows reaches the profile is skipped
     per_layer = jax.tree_util.tree_map(lambda x: x.reshape((len(thin), -1) + x.shape[1:]),
                                        (face_terms, through_terms, guided_terms))
-    dT, dT_att = _in_chunks(reached, per_layer, 1 if jax.default_backend() == "cpu" else len(thin))
+    reaching = jnp.any(jnp.concatenate([_reaching(group, first_edge_um, terms[1])
+                                        for terms in per_layer], axis=1), axis=1)
+    dT, dT_att = _in_chunks(layer_terms, per_layer, 1 if jax.default_backend() == "cpu" else len(thin), reaching)
     return T + jnp.sum(dT, axis=0), T_att + jnp.sum(dT_att, axis=0)
 
 
-def _reaches(group: ProfileGroup, first_edge_um, landing_um):
-    """Whether any kernel window centred at ``landing_um`` (n_side,) overlaps the profile's edges.
+def _reaching(group: ProfileGroup, first_edge_um, landing_um):
+    """Whether each kernel window centred at ``landing_um`` (...) overlaps the profile's edges.
 
     A window entirely beyond them adds nothing: its rays land beyond every edge (evaluated,
     the kernel leaves only the drift of its depth quadrature with the edge there, < 1e-6)."""
     centre = (landing_um - first_edge_um) / group.bin_um
-    return jnp.any((centre + group.window + 1 >= 0) & (centre - group.window - 1 <= group.n_edges - 1))
+    return (centre + group.window + 1 >= 0) & (centre - group.window - 1 <= group.n_edges - 1)
 
 
 def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):
