@@ -589,7 +589,7 @@ def _windowed(group: ProfileGroup, first_edge_um, n_bins: int, sign, landing_um,
     µm -> cumulative kernels (C_T, C_att) on them, each (n_side, 2 window + 1).
     """
     n_window = 2 * group.window + 1
-    centre = jnp.round((landing_um - first_edge_um) / group.bin_um).astype(jnp.int32)
+    centre = jnp.round(_landing_bin(group, first_edge_um, landing_um)).astype(jnp.int32)
     start = jnp.clip(centre - group.window, 0, group.n_edges - n_window)
     window_edges = first_edge_um + group.bin_um * (start[:, None] + jnp.arange(n_window))
     C_T, C_att = cumulative(sign[:, None] * window_edges)
@@ -694,8 +694,13 @@ def _reaching(group: ProfileGroup, first_edge_um, landing_um):
 
     A window entirely beyond them adds nothing: its rays land beyond every edge (evaluated,
     the kernel leaves only the drift of its depth quadrature with the edge there, < 1e-6)."""
-    centre = (landing_um - first_edge_um) / group.bin_um
+    centre = _landing_bin(group, first_edge_um, landing_um)
     return (centre + group.window + 1 >= 0) & (centre - group.window - 1 <= group.n_edges - 1)
+
+
+def _landing_bin(group: ProfileGroup, first_edge_um, landing_um):
+    """Where ``landing_um`` lies on the profile's sub-bin edges (fractional edge index)."""
+    return (landing_um - first_edge_um) / group.bin_um
 
 
 def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):
