@@ -239,6 +239,39 @@ def test_thick_coating_is_exact(thin_layer_errors):
     assert abs(peak_model - peak_tracer) < 0.01
 
 
+
+# --------------------------------------------------------------------------- wide tilted layers
+
+
+def test_face_wholly_before_the_mid_plane_matches_tracer():
+    """An 80 mm wide Al layer (mu 300 / m, 1 mm deep) tilted by 1°: its right-hand face spans
+    depths z = -698 +- 500 µm, wholly before the mid-plane z = 0. The step profile used to give
+    rays their side of that face at z = 0, where the face does not reach: the rays that cross
+    its line between its end and z = 0 (a 9 µm band) counted as inside the layer, and T_att
+    was 0.0043 RMS off the tracer (T 0.0047). Its assignment plane is the face's end now
+    (``_model._assignment_planes``): measured 0.00035 (T 0.0016, the tracer's noise)."""
+    width_um, tilt_deg, line = 80000.0, 1.0, fwdfit.GaussianLine(4.0, 0.1)
+    geometry = dict(aperture="square", aperture_mm=20.0, aperture_distance_m=5.0)
+    face_um = 0.5 * width_um / math.cos(math.radians(tilt_deg))
+    with jax.enable_x64(True):
+        scene = fwdfit.Scene(
+            sample=fwdfit.Sample(depth_mm=1.0, tilt_deg=tilt_deg, centre_um=0.0,
+                                 layers=(fwdfit.Layer("Al", width_um, AL[0], 300.0),)),
+            instruments={"": fwdfit.Instrument(geometry["aperture"], geometry["aperture_mm"],
+                                               geometry["aperture_distance_m"], 2.4)},
+            spectra={"line": line},
+            profiles=(fwdfit.Profile("p", 10.0, "line", "", fwdfit.pixel_grid(face_um - 90.0, face_um + 90.0, 2.4)),))
+        T, T_att = (np.asarray(v[0]) for v in eqx.filter_jit(fwdfit.build_model(scene))(fwdfit.initial_params(scene)))
+    x = scene.profiles[0].x_um
+    ref = trace_reference([ReferenceLayer(width_um, AL[0], 300.0)], depth_mm=1.0, tilt_deg=tilt_deg, centre_um=0.0,
+                          distance_mm=10.0, spectrum_lambda_A=gaussian_line_table(4.0, 0.1)[0],
+                          spectrum_weight=gaussian_line_table(4.0, 0.1)[1],
+                          pixel_edges_um=np.append(x - 1.2, x[-1] + 1.2), n_rays=2_000_000, seed=5, **geometry)
+    print(f"wide tilted layer: RMS(T_att - tracer) = {rms(T_att - ref.T_att):.5f}, "
+          f"RMS(T - tracer) = {rms(T - ref.T):.5f}, tracer noise RMS {rms(ref.T_err):.5f}")
+    assert rms(T_att - ref.T_att) < 0.001
+    assert rms(T - ref.T) < 0.003
+
 def test_zero_thickness_layer_material_does_not_matter(results, tmp_path):
     """A 0 µm layer has no effect whatever its material: with the 160 µm layers of the
     stack set to 0 µm (kept in the model because their thickness is free, as in a fit; they

@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import importlib.metadata
+import math
 import os
 import stat
 import subprocess
@@ -249,14 +250,24 @@ def test_wide_attenuating_tilted_stack_is_finite(scene):
     assert np.all(np.abs(profile.T) < 1e-9) and np.all(np.abs(profile.T_att) < 1e-9), (profile.T, profile.T_att)
 
 
-@pytest.mark.xfail(strict=True, reason="model bug found by tests/test_fuzz.py (_model/_kernel): NaN where "
-                   "a face of a wide, opaque, strongly tilted layer is in view")
 def test_wide_attenuating_tilted_stack_is_finite_at_its_face(scene):
-    """The same layer seen where its right-hand face's rays land (37.2-38.9 mm): T is NaN
-    there. Probably true_path's exp(-mu (z - z_lo) - mu (z_hi - z)) overflowing at depth nodes
-    outside the layer's slab."""
+    """The same layer seen where its right-hand face's rays land (37.2-38.9 mm). The face spans
+    depths -3214 +- 1000 µm, wholly before the mid-plane; its depth quadrature ran on to z = 0,
+    where exp(mu (z - z_hi)) overflows, and T was NaN there (a strict xfail). Now T = T_att is
+    finite, goes from 0 to 1 across the penumbra, and is 1/2 where the ray from the aperture's
+    centre through the face's downstream end (its assignment plane) lands."""
     profile, = fwdfit.simulate(_opaque_tilted_stack(scene, (37200.0, 38900.0)))
     assert np.all(np.isfinite(profile.T)) and np.all(np.isfinite(profile.T_att))
+    # within 0.005 of [0, 1]: the depth quadrature of the face's crossing rays is ~3e-3 off at the
+    # penumbra's start, where mu * depth = 2000 leaves only the last µm before the face's end
+    assert abs(profile.T_att[0]) < 1e-9 and abs(profile.T_att[-1] - 1) < 1e-9
+    assert np.all(profile.T_att > -0.005) and np.all(profile.T_att < 1.005)
+    tilt, half_width, depth, distance, L = math.radians(5.0), 73750.0 / 2, 2000.0, 183e3, 5.5e6
+    z_end = -half_width * math.sin(tilt) + depth / 2  # the face's downstream end
+    x_end = half_width / math.cos(tilt) + math.tan(tilt) * z_end
+    expected = x_end * L / (L - distance + z_end)  # 38105.4 µm (the mid-plane's projection: 38290)
+    half = np.interp(0.5, profile.T_att, profile.x_um)
+    assert abs(half - expected) < 2.0, (half, expected)
 
 
 def _fitted_profile(name: str, **overrides):

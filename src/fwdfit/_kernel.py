@@ -49,6 +49,13 @@ def _safe_sqrt(x):
     return jnp.sqrt(jnp.maximum(x, _TINY))
 
 
+def in_plane_frame(boundary_um, slope, z_mid_um, distance_um, plane_um):
+    """A face's geometry (boundary at z = 0, z-centre, distance to the detector, µm) in the
+    frame whose z = 0 is the depth ``plane_um`` at which the step profile assigns its rays
+    (``_model._assignment_planes``): the kernels subtract that assignment at their z = 0."""
+    return boundary_um + slope * plane_um, z_mid_um - plane_um, distance_um - plane_um
+
+
 class AngularMass:
     """Rays through a point (x, z) per unit crossing length: int q(theta) * a da.
 

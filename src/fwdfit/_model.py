@@ -34,7 +34,7 @@ from jaxtyping import Array, Float
 from . import _thin
 from ._aperture import APERTURES
 from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, fresnel_kinks, fresnel_transfer,
-                      landing_range, straight_cumulative, straight_kinks)
+                      in_plane_frame, landing_range, straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
 DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane
@@ -236,10 +236,12 @@ def _vanishing(thickness_um, vanishing, sld, mu, sld_end, mu_end):
     return sld, mu, sld_end, mu_end
 
 
-def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um, distance_um):
-    """Mid-plane positions (n_jump,) µm of the step profile's jumps, the jumps in the
-    spectrum-averaged transmission, and the shift (µm) of the rays of each jump (None when
-    no layer is graded). A graded layer is ``step_pieces`` uniform pieces whose rays the SLD
+def _step_jumps(model, params: ModelParams, boundary_um, plane_um, step_spectrum, depth_um, distance_um):
+    """Positions (n_jump,) µm of the step profile's jumps in their assignment planes, those
+    planes' depths z (µm), the jumps in the spectrum-averaged transmission, and the shift (µm)
+    of the rays of each jump (None when no layer is graded). boundary_um, plane_um: each
+    boundary in its plane and that plane (``_assignment_planes``). A graded layer is
+    ``step_pieces`` uniform pieces whose rays the SLD
     gradient bends by depth x d(delta)/dx (paraxial prism, at the spectrum's mean lambda^2):
     they land depth x distance x d(delta)/dx further towards lower delta. Each jump between
     pieces of different shifts is then two: +t_right at the right piece's shift, -t_left at
@@ -247,7 +249,7 @@ def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um
     step_lam, step_weight, step_table = step_spectrum
     sld, mu, sld_end, mu_end = _media(params, step_lam, step_table, model.graded, model.vanishing)
     if not any(model.graded):
-        return boundary_um, jnp.diff(step_weight @ jnp.exp(-mu * depth_um)), None
+        return boundary_um, plane_um, jnp.diff(step_weight @ jnp.exp(-mu * depth_um)), None
     medium, fraction, left, at = [0], [0.0], [0], [0.0]  # pieces; jumps: left boundary + fraction
     for i, graded in enumerate(model.graded):
         n = model.step_pieces if graded else 1
@@ -260,10 +262,12 @@ def _step_jumps(model, params: ModelParams, boundary_um, step_spectrum, depth_um
     mu_piece = mu[:, medium] + (mu_end[:, medium] - mu[:, medium]) * fraction
     transmitted = step_weight @ jnp.exp(-mu_piece * depth_um)
     positions = boundary_um[left] + (boundary_um[left + 1] - boundary_um[left]) * at
+    planes = plane_um[left] + (plane_um[left + 1] - plane_um[left]) * at  # within each piece's depths
     thickness = jnp.concatenate([jnp.ones((1,), sld.dtype), params.thickness_um, jnp.ones((1,), sld.dtype)])
     delta_slope = (step_weight @ step_lam**2) * 1e-6 / (2 * jnp.pi) * (sld_end - sld) / jnp.maximum(thickness, 1e-9)
     shift = -depth_um * distance_um * delta_slope[medium]  # per piece
-    return (jnp.concatenate([positions, positions]), jnp.concatenate([transmitted[1:], -transmitted[:-1]]),
+    twice = lambda values: jnp.concatenate([values, values])
+    return (twice(positions), twice(planes), jnp.concatenate([transmitted[1:], -transmitted[:-1]]),
             jnp.concatenate([shift[1:], shift[:-1]]))
 
 
@@ -276,16 +280,30 @@ def _boundaries(params: ModelParams, shift_um):
     return params.centre_um + shift_um + across / jnp.cos(tilt), jnp.tan(tilt), -across * jnp.sin(tilt)
 
 
-def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um, shift_um=None):
-    """Bin averages (n_edges-1,) of the mid-plane step profile seen through the aperture.
+def _assignment_planes(model, z_mid_um, depth_um):
+    """Depth z (µm, (n_layer+1,)) at which the step profile gives each ray the side of each
+    boundary it is on: the mid-plane z = 0, or the nearer end of the face where the face lies
+    wholly before or after it (a wide, tilted layer: a ray that crosses the face's line between
+    the face's end and the mid-plane crosses no face, and must not change sides there). Both
+    faces of a coupled thin layer take its first face's plane (its kernels share one frame)."""
+    plane = jnp.clip(0.0, z_mid_um - 0.5 * depth_um, z_mid_um + 0.5 * depth_um)
+    for layer in model.thin:
+        plane = plane.at[layer.layer].set(plane[layer.layer - 1])
+    return plane
 
-    A ray through mid-plane point x0 reaching detector point X left the aperture at
-    x_ap = (x0 L - X (L - Delta)) / Delta; the fraction of the aperture that sees
+
+def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um, shift_um=None):
+    """Bin averages (n_edges-1,) of the step profile seen through the aperture.
+
+    Each jump (n_jump,) sits at boundary_um in its assignment plane, distance_um (n_jump,)
+    from the detector. A ray through that plane's point x0 reaching detector point X left the
+    aperture at x_ap = (x0 L - X (L - Delta)) / Delta; the fraction of the aperture that sees
     x0 > b is 1 - cdf(2 x_ap / D), integrated over the bin in closed form. shift_um
     (per jump, optional): the jump's rays land that much further (a graded layer's prism).
     """
     _, _, cdf_integral = APERTURES[group.aperture]
     L, D = group.aperture_distance_um, group.aperture_um
+    distance_um = distance_um[:, None]
     to_sample = L - distance_um
     landing = edges_um[None, :] if shift_um is None else edges_um[None, :] - shift_um[:, None]
     s = 2.0 * (boundary_um[:, None] * L - landing * to_sample) / (distance_um * D)
@@ -300,7 +318,8 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
     the cumulative (``_kernel``) has a kink in z where that angle meets one of the two
     ``kinks(mass)`` angles, which depend on z only through the aperture's view.
-    Splitting there, and at the mid-plane z = 0 where the step assignment jumps,
+    Splitting there, and at the mid-plane z = 0 where the step assignment jumps (where it lies
+    between z_lo and z_hi),
     keeps every piece smooth, so the kernel is smooth in the parameters rather than
     piecewise linear. aim_um: (..., e) µm, one value per edge. extra_cuts: more depths
     (each broadcastable to aim_um) to split at, one more piece each (a thin layer's kinks).
@@ -316,10 +335,11 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     refined = kinks(mass_at(jnp.stack([first, second])))
     first, second = depth_at(refined[0][0]), depth_at(refined[1][1])
     first, second = jnp.minimum(first, second), jnp.maximum(first, second)
-    zero = jnp.zeros_like(first)
-    cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, zero),
-                      jnp.clip(zero, first, second), jnp.maximum(second, zero),
-                      jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, 0 <= z_hi
+    # the mid-plane within the face's depths: a face of a wide tilted layer may lie wholly before or after it
+    mid = jnp.clip(jnp.zeros_like(first), z_lo, z_hi)
+    cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, mid),
+                      jnp.clip(mid, first, second), jnp.maximum(second, mid),
+                      jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, mid <= z_hi
     if extra_cuts:
         more = jnp.stack([jnp.clip(jnp.broadcast_to(c, first.shape), z_lo, z_hi) for c in extra_cuts], axis=-2)
         cuts = jnp.sort(jnp.concatenate([cuts, more], axis=-2), axis=-2)
@@ -341,8 +361,8 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
     at z = 0, its slope, its z-centre, mu before and after (n_lam,),
-    k = 2 (delta_after - delta_before) (n_lam,) and the RMS slope of the face's normal
-    (rad). Each term is summed over depth nodes aligned with its own kinks
+    k = 2 (delta_after - delta_before) (n_lam,), the RMS slope of the face's normal
+    (rad) and its assignment plane (``_assignment_planes``). Each term is summed over depth nodes aligned with its own kinks
     (``_kink_aligned_depths``). The kernel replaces the crossing rays' step assignment by
     their true path in its own wavelength quadrature, so that an interface without
     contrast adds exactly nothing. A rough face's deflected rays are averaged over its
@@ -353,7 +373,8 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     mu_A) of its layer B between A and C; with Fresnel reflection the rays its second face
     reflects cross B back into A (``_kernel.fresnel_transfer``'s ``returning``).
     """
-    boundary, slope, z_mid, mu_from, mu_to, k, slope_rms = side
+    boundary, slope, z_mid, mu_from, mu_to, k, slope_rms, plane = side
+    boundary, z_mid, distance_um = in_plane_frame(boundary, slope, z_mid, distance_um, plane)
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
     L = group.aperture_distance_um
     limits = None if restrict is None else _thin.face_limits(restrict, z_lo, z_hi)
@@ -543,14 +564,16 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
     distance_um, depth_um = distance_mm * 1e3, params.depth_mm * 1e3
     sld, mu, sld_end, mu_end = _media(params, wavelength_A, mu_table_per_m, model.graded, model.vanishing)
     boundary, slope, z_mid = _boundaries(params, shift_um)
+    plane = _assignment_planes(model, z_mid, depth_um)
     edges = first_edge_um + group.bin_um * jnp.arange(group.n_edges)
-    positions, jumps, shifts = _step_jumps(model, params, boundary, step_spectrum, depth_um, distance_um)
-    T = _step_profile(group, positions, jumps, distance_um, edges, shifts)
-    T_att = T if shifts is None else _step_profile(group, positions, jumps, distance_um, edges)
+    positions, planes, jumps, shifts = _step_jumps(model, params, boundary + slope * plane, plane, step_spectrum,
+                                                   depth_um, distance_um)
+    T = _step_profile(group, positions, jumps, distance_um - planes, edges, shifts)
+    T_att = T if shifts is None else _step_profile(group, positions, jumps, distance_um - planes, edges)
     delta_per_sld = wavelength_A**2 * 1e-6 / (2 * jnp.pi)
     slope_rms = 1e-3 * jnp.concatenate([params.left_roughness_mrad[None], params.roughness_mrad])
     if model.thin:
-        T, T_att = _thin_terms(group, model.thin, (T, T_att), sld, mu, (boundary, slope, z_mid), distance_um,
+        T, T_att = _thin_terms(group, model.thin, (T, T_att), sld, mu, (boundary, slope, z_mid, plane), distance_um,
                                wavelength_weight, depth_um, delta_per_sld, first_edge_um)
     for refracting, rough in ((True, False), (True, True), (False, False)):
         faces = [f for f in model.interfaces if f.refracting == refracting and f.rough == rough]
@@ -570,7 +593,7 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
             (b, slope, z_mid[position], 2.0 * (sld_after - sld_before) * jnp.max(delta_per_sld))),
             sign, distance_um)
         sides = (sign * b, sign * slope, z_mid[position], mu_before.T, mu_after.T,
-                 2.0 * (sld_after - sld_before)[:, None] * delta_per_sld, slope_rms[position])
+                 2.0 * (sld_after - sld_before)[:, None] * delta_per_sld, slope_rms[position], plane[position])
         one_side = functools.partial(_crossing_kernel, group, distance_um=distance_um,
                                      wavelength_weight=wavelength_weight, depth_um=depth_um,
                                      refracting=refracting, rough=rough)
@@ -621,7 +644,7 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     first face restricted to rays that stay in B, the second restricted to rays that
     started in B (both ``_crossing_kernel``), and the rays through both faces.
     """
-    boundary, slope, z_mid = geometry
+    boundary, slope, z_mid, plane = geometry
     T, T_att = values
     group = dataclasses.replace(group, z_nodes=group.thin_z_nodes, z_weights=group.thin_z_weights)
     k = lambda before, after: 2.0 * (sld[np.asarray(after)] - sld[np.asarray(before)])[:, None] * delta_per_sld  # (n, l)
@@ -645,7 +668,7 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (b, slope, z_mid[position], 2.0 * (sld[after] - sld[before]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * b, sign * slope, z_mid[position], mu[:, before].T, mu[:, after].T, k(before, after),
-             jnp.zeros_like(b))  # sharp faces
+             jnp.zeros_like(b), plane[position])  # sharp faces
     face_terms = (sign, landing, sides, restrict)
 
     sign = jnp.asarray([t[0] for t in through], boundary.dtype)
@@ -653,11 +676,11 @@ def _thin_terms(group: ProfileGroup, thin, values, sld, mu, geometry, distance_u
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(  # they leave from the second face
         (boundary[second], slope, z_mid[first], 2.0 * (sld[c] - sld[a]) * jnp.max(delta_per_sld))), sign, distance_um)
     sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, a].T, mu[:, b_].T, mu[:, c].T,
-             k(a, b_), k(a, c), jnp.stack([t[6] for t in through]))
+             k(a, b_), k(a, c), jnp.stack([t[6] for t in through]), plane[first])
     through_terms = (sign, landing, sides)
 
     sides = (sign * boundary[first], sign * slope, z_mid[first], mu[:, b_].T, jnp.stack([t[7] for t in through]),
-             jnp.stack([t[6] for t in through]))
+             jnp.stack([t[6] for t in through]), plane[first])
     landing = _landing_centre_um(group, *jax.lax.stop_gradient(
         (0.5 * (boundary[first] + boundary[second]), slope, z_mid[first], 0.0 * sign)), sign, distance_um)
     guided_terms = (sign, landing, sides)

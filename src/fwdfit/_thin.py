@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._kernel import AngularMass, deflected_kinks, straight_kinks
+from ._kernel import AngularMass, deflected_kinks, in_plane_frame, straight_kinks
 
 NEWTON_STEPS = 6  # for the incoming angle that lands at an edge after both faces
 # µm or rad: keeps w / reach and w / u finite (and 0 for w = 0); its fourth power stays a normal
@@ -160,13 +160,15 @@ def through_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_
     """Cumulative kernels (T, T_att) (n_window_edges,) of the rays that cross both faces.
 
     side, in the local frame: the first face's boundary at z = 0, its slope and
-    z-centre, mu of A, B, C (n_lam,), k_AB and k_AC (n_lam,) and the width w (µm).
+    z-centre, mu of A, B, C (n_lam,), k_AB and k_AC (n_lam,), the width w (µm) and the
+    assignment plane (``_model._assignment_planes``).
     As ``_model._crossing_kernel``, the step assignment of these rays (A, B or C by
     where the straight ray is at z = 0) is subtracted. depth_nodes:
     ``_model._kink_aligned_depths``. The attenuation in B is integrated over angle on
     the group's ``thin_nodes``.
     """
-    boundary, slope, z_mid, mu_a, mu_b, mu_c, k_ab, k_ac, w = side
+    boundary, slope, z_mid, mu_a, mu_b, mu_c, k_ab, k_ac, w, plane = side
+    boundary, z_mid, distance_um = in_plane_frame(boundary, slope, z_mid, distance_um, plane)
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
     L = group.aperture_distance_um
     gauss = (group.thin_nodes, group.thin_weights)
@@ -280,9 +282,11 @@ def guided_kernel(group, side, distance_um, wavelength_weight, depth_um, edges_u
     at +a or -a. Replaces the straight landing of those that reach no face (the step
     profile's); those that reach one are left out of ``_crossing_kernel`` (its floor).
     side: the first face's boundary at z = 0, slope, z-centre, mu_B (n_lam,),
-    trapped (n_lam,) rad, w µm. Midpoint rule over angle on ``group.guided_cells`` cells.
+    trapped (n_lam,) rad, w µm, the assignment plane. Midpoint rule over angle on
+    ``group.guided_cells`` cells.
     """
-    boundary, slope, z_mid, mu_b, trapped, w = side
+    boundary, slope, z_mid, mu_b, trapped, w, plane = side
+    boundary, z_mid, distance_um = in_plane_frame(boundary, slope, z_mid, distance_um, plane)
     z_lo, z_hi = z_mid - 0.5 * depth_um, z_mid + 0.5 * depth_um
     L = group.aperture_distance_um
     front = AngularMass(group.aperture, boundary + slope * z_lo, slope, L - distance_um + z_lo, group.aperture_um)
