@@ -258,8 +258,9 @@ def test_wide_attenuating_tilted_stack_is_finite_at_its_face(scene):
     centre through the face's downstream end (its assignment plane) lands."""
     profile, = fwdfit.simulate(_opaque_tilted_stack(scene, (37200.0, 38900.0)))
     assert np.all(np.isfinite(profile.T)) and np.all(np.isfinite(profile.T_att))
-    # within 0.005 of [0, 1]: the depth quadrature of the face's crossing rays is ~3e-3 off at the
-    # penumbra's start, where mu * depth = 2000 leaves only the last µm before the face's end
+    # within 0.005 of [0, 1]: T_att dips 0.004 below 0 at the penumbra's start (the circular
+    # aperture's rim), where the face's crossing rays, with mu * depth = 2000, transmit only in
+    # the last µm before its end; not understood further
     assert abs(profile.T_att[0]) < 1e-9 and abs(profile.T_att[-1] - 1) < 1e-9
     assert np.all(profile.T_att > -0.005) and np.all(profile.T_att < 1.005)
     tilt, half_width, depth, distance, L = math.radians(5.0), 73750.0 / 2, 2000.0, 183e3, 5.5e6

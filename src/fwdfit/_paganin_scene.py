@@ -67,20 +67,11 @@ def profile_tau_um2(scene: Scene, profile: Profile, layer: Layer, *, b_factor: f
         lam, weight = np.array([spectrum.mean_wavelength_A]), np.array([1.0])
     else:
         lam, weight = wavelength_quadrature(spectrum, _WEIGHTED_TAU_NODES)
-    tau = paganin_tau_um2(wavelength_A=lam, mu_per_m=layer_mu_per_m(layer, lam),
+    tau = paganin_tau_um2(wavelength_A=lam, mu_per_m=layer.mu_per_m_at(lam),
                           sld_e6_per_A2=layer.density_scale * layer.sld_e6_per_A2, distance_mm=profile.distance_mm,
                           divergence_rad=1e-3 * instrument.aperture_mm / instrument.aperture_distance_m,
                           b_factor=b_factor)
     return float(np.average(tau, weights=weight))
-
-
-def layer_mu_per_m(layer: Layer, wavelength_A: np.ndarray) -> np.ndarray:
-    """Attenuation coefficient of a layer at wavelengths (Å), 1/m, Bragg-edge table and density scale included."""
-    lam = np.asarray(wavelength_A, dtype=float)
-    mu = layer.mu_per_m + layer.mu_per_m_per_A * lam
-    if layer.material is not None and layer.material.mu_table is not None:
-        mu = mu + layer.material.mu_table(lam)
-    return layer.density_scale * mu
 
 
 def paganin_profiles(scene: Scene, *, material: str | None = None, b_factor: float = 1.0,

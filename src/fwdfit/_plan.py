@@ -63,6 +63,14 @@ _GUIDED_CELLS = 32  # angle cells of the rays guided inside a coupled thin layer
 # Depth nodes per smooth piece at accuracy 1e-3: base + per_log * log(lever ratio).
 _DEPTH_NODES_BASE = 1.5
 _DEPTH_NODES_PER_LOG = 0.5
+# ... and at least 1 + (mu contrast x depth) / this, for the crossing rays' attenuation
+# exp(-mu_1 (z - z_lo) - mu_2 (z_hi - z)), far from polynomial in z across a strong absorber's
+# face (measured, T_att at 10 mm of a block with mu x depth = 10 and 20: 2 nodes 1.0e-2 and
+# 2.3e-2 off the converged model, 4 and 6 nodes 2.1e-5 and 2.5e-6), at most _MAX_ATTENUATION_NODES:
+# beyond mu x depth ~ 36 the rays crossing within depth / (mu x depth) of the face's end, which
+# the nodes then miss, carry at most ~3e-3 of a pixel (mu x depth ~ 300), less either way.
+_DEPTH_NODES_PER_ATTENUATION = 4.0
+_MAX_ATTENUATION_NODES = 10
 # Rough faces: equiprobable strata of the normal's tilt (``_model._tilt_quantiles``), one per
 # this much RMS slope at accuracy 1e-3 and a lever of _ROUGH_LEVER_UM, more as the square root
 # of longer levers (the tilts move the landing rays by tilt x lever; against the tracer, 2 mrad
@@ -82,7 +90,7 @@ _MAX_STEP_PIECES = 64
 
 
 def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: float,
-                     coupled: bool = False) -> tuple[int, int]:
+                     coupled: bool = False, attenuation: float = 0.0) -> tuple[int, int]:
     """(wavelength nodes, depth nodes per smooth piece) for a target RMS error in T.
 
     Calibrated against the converged model and the exact reference
@@ -96,6 +104,7 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     for a third of the error the depth nodes are set for (the depth nodes set the
     largest single-pixel errors at the edges). coupled: the model has coupled thin layers,
     whose white-beam kernels need more wavelength nodes (``_THIN_LAMBDA_FACTOR``).
+    attenuation: the largest change of mu x depth across a face (``_face_attenuation``).
     """
     factor = math.sqrt(1e-3 / accuracy)
     band_rel = ((spectrum.lambda_max_A - spectrum.lambda_min_A) / spectrum.mean_wavelength_A
@@ -105,8 +114,19 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
     base_lambda = 4 if band_rel < _BIN_BAND_REL else 8 if narrow else white
     n_lambda = max(4, math.ceil(base_lambda * factor * _LAMBDA_NODES_SCALE))
     lever_ratio = (distance_mm + 0.5 * depth_mm) / (distance_mm - 0.5 * depth_mm)
-    n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))))
+    n_z = max(1, math.ceil(factor * (_DEPTH_NODES_BASE + _DEPTH_NODES_PER_LOG * math.log(lever_ratio))),
+              math.ceil(factor * min(1.0 + attenuation / _DEPTH_NODES_PER_ATTENUATION, _MAX_ATTENUATION_NODES)))
     return n_lambda, n_z
+
+
+def _face_attenuation(scene: Scene, wavelength_A: np.ndarray) -> float:
+    """The largest change of mu x depth across a face of the stack (vacuum on both sides) at
+    the wavelengths (Å) given, for the layers' start values."""
+    layers = scene.sample.layers
+    left = [np.zeros_like(wavelength_A)] + [layer.mu_per_m_at(wavelength_A) for layer in layers]
+    right = [layer.mu_per_m_at(wavelength_A, right=True) for layer in layers] + [np.zeros_like(wavelength_A)]
+    contrast = max(float(np.max(np.abs(a - b))) for a, b in zip(left, right))
+    return contrast * 1e-3 * scene.sample.depth_mm
 
 
 def fresnel_nodes(accuracy: float, aperture: str) -> int:
@@ -454,8 +474,9 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
                                1e-3 * rough_mrad * _ROUGH_REACH if any_rough else 0.0)
         windows[i] = min(math.ceil(window_um / bin_um) + 2, (n_edges - 1) // 2)
         window = min(_ladder(windows[i]), (n_edges - 1) // 2)  # the plan's class; its groups take what they need
+        probe_A, _ = wavelength_quadrature(spectrum, _STEP_WAVELENGTHS, breaks_A)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm,
-                                         coupled=bool(thin))
+                                         coupled=bool(thin), attenuation=_face_attenuation(scene, probe_A))
         lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
         strata = 0

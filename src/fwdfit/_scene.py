@@ -60,6 +60,16 @@ class Layer:
         """A layer named ``name`` tied to this one (``same_as``): every value shared."""
         return dataclasses.replace(self, name=name, same_as=self.same_as or self.name)
 
+    def mu_per_m_at(self, wavelength_A, right: bool = False) -> np.ndarray:
+        """Attenuation (1/m) at wavelengths (Å), table and density scale included; at the
+        right-hand side of a graded layer where ``right``."""
+        lam = np.asarray(wavelength_A, dtype=float)
+        end = self.mu_end_per_m if right and not math.isnan(self.mu_end_per_m) else self.mu_per_m
+        mu = end + self.mu_per_m_per_A * lam
+        if self.material is not None and self.material.mu_table is not None:
+            mu = mu + self.material.mu_table(lam)
+        return self.density_scale * mu
+
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
