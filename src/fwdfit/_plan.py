@@ -121,11 +121,12 @@ def quadrature_sizes(accuracy: float, spectrum, distance_mm: float, depth_mm: fl
 
 def _face_attenuation(scene: Scene, wavelength_A: np.ndarray) -> float:
     """The largest change of mu x depth across a face of the stack (vacuum on both sides) at
-    the wavelengths (Å) given, for the layers' start values."""
+    the wavelengths (Å) given, for the layers' start values (a free mu without one, NaN,
+    counts as no change)."""
     layers = scene.sample.layers
     left = [np.zeros_like(wavelength_A)] + [layer.mu_per_m_at(wavelength_A) for layer in layers]
     right = [layer.mu_per_m_at(wavelength_A, right=True) for layer in layers] + [np.zeros_like(wavelength_A)]
-    contrast = max(float(np.max(np.abs(a - b))) for a, b in zip(left, right))
+    contrast = max(float(np.max(np.nan_to_num(np.abs(a - b)))) for a, b in zip(left, right))
     return contrast * 1e-3 * scene.sample.depth_mm
 
 
