@@ -458,6 +458,9 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     per_profile = []
     depth_nodes, windows = {}, {}
     breaks_A = bragg_breaks_A(scene, accuracy)
+    attenuation = {name: _face_attenuation(scene, wavelength_quadrature(scene.spectra[name], _STEP_WAVELENGTHS,
+                                                                        breaks_A)[0])
+                   for name in {profile.spectrum for profile in scene.profiles}}  # per spectrum, not per profile
     for i, profile in enumerate(scene.profiles):
         instrument = scene.instruments[profile.instrument]
         spectrum = scene.spectra[profile.spectrum]
@@ -475,9 +478,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
                                1e-3 * rough_mrad * _ROUGH_REACH if any_rough else 0.0)
         windows[i] = min(math.ceil(window_um / bin_um) + 2, (n_edges - 1) // 2)
         window = min(_ladder(windows[i]), (n_edges - 1) // 2)  # the plan's class; its groups take what they need
-        probe_A, _ = wavelength_quadrature(spectrum, _STEP_WAVELENGTHS, breaks_A)
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm,
-                                         coupled=bool(thin), attenuation=_face_attenuation(scene, probe_A))
+                                         coupled=bool(thin), attenuation=attenuation[profile.spectrum])
         lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
         strata = 0
