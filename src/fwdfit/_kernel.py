@@ -175,6 +175,17 @@ def fresnel_kinks(mass: AngularMass, k, right_of_interface):
     return _sided_kinks(_refracted_kinks(mass, k, critical), (-critical, -mass.a_max), right_of_interface)
 
 
+def deflected_and_fresnel_kinks(mass: AngularMass, k, right_of_interface):
+    """Grazing angles at the edge where ``deflected_cumulative`` or ``fresnel_transfer`` has
+    kinks, three, for one set of depth nodes for both: right of the interface's projection the
+    two of ``deflected_kinks`` and one between them (a cut that only shortens a smooth piece),
+    left of it the fan's start and end and the critical angle."""
+    critical = _critical(mass, k)
+    refracted = _refracted_kinks(mass, k, critical)
+    return _sided_kinks(refracted + (0.5 * (refracted[0] + refracted[1]),), (-mass.a_min, -critical, -mass.a_max),
+                        right_of_interface)
+
+
 def _refracted_kinks(mass: AngularMass, k, critical):
     """Outgoing angles of the refracted rays from the critical angle and from the fan's end."""
     return (_safe_sqrt(critical * critical - k) * (critical * critical > k),

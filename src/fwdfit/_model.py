@@ -33,7 +33,8 @@ from jaxtyping import Array, Float
 
 from . import _thin
 from ._aperture import APERTURES
-from ._kernel import (AngularMass, deflected_cumulative, deflected_kinks, fresnel_kinks, fresnel_transfer,
+from ._kernel import (AngularMass, deflected_and_fresnel_kinks, deflected_cumulative, deflected_kinks, fresnel_kinks,
+                      fresnel_transfer,
                       in_plane_frame, landing_range, straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
@@ -312,17 +313,19 @@ def _step_profile(group: ProfileGroup, boundary_um, jump, distance_um, edges_um,
     return 1.0 + jump @ beyond
 
 
-def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup, extra_cuts=()):
-    """Depth nodes and weights (..., DEPTH_PIECES n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
+def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group: ProfileGroup, extra_cuts=(),
+                         mid_plane=True):
+    """Depth nodes and weights (..., pieces n, e) of Gauss-Legendre on [z_lo, z_hi], split where the integrand kinks.
 
     The ray from depth z to an edge grazes the interface at aim_um / (distance_um - z);
-    the cumulative (``_kernel``) has a kink in z where that angle meets one of the two
-    ``kinks(mass)`` angles, which depend on z only through the aperture's view.
-    Splitting there, and at the mid-plane z = 0 where the step assignment jumps (where it lies
-    between z_lo and z_hi),
-    keeps every piece smooth, so the kernel is smooth in the parameters rather than
-    piecewise linear. aim_um: (..., e) µm, one value per edge. extra_cuts: more depths
-    (each broadcastable to aim_um) to split at, one more piece each (a thin layer's kinks).
+    the cumulative (``_kernel``) has a kink in z where that angle meets one of the
+    ``kinks(mass)`` angles (two, or three for ``deflected_and_fresnel_kinks``), which depend on
+    z only through the aperture's view. Splitting there, and (``mid_plane``) at the mid-plane
+    z = 0 where the step assignment jumps (where it lies between z_lo and z_hi), keeps every
+    piece smooth, so the kernel is smooth in the parameters rather than piecewise linear.
+    aim_um: (..., e) µm, one value per edge. extra_cuts: more depths (each broadcastable to
+    aim_um) to split at, one more piece each (a thin layer's kinks). Two kinks and the
+    mid-plane make ``DEPTH_PIECES`` pieces.
     """
     def depth_at(angle):  # where the ray to the edge grazes at ``angle``; z_hi if never
         reaches = jnp.abs(angle) > _TINY_ANGLE
@@ -331,28 +334,34 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
 
     # The kink angles from the mid-plane's view, then once more from the depths found:
     # the view changes by ~z / L, so one step leaves the cuts ~1e-4 µm off the kinks.
-    first, second = (depth_at(angle) for angle in kinks(mass_at(jnp.zeros_like(aim_um[..., :1]))))
-    refined = kinks(mass_at(jnp.stack([first, second])))
-    first, second = depth_at(refined[0][0]), depth_at(refined[1][1])
-    first, second = jnp.minimum(first, second), jnp.maximum(first, second)
+    depths = [depth_at(angle) for angle in kinks(mass_at(jnp.zeros_like(aim_um[..., :1])))]
+    refined = kinks(mass_at(jnp.stack(depths)))
+    depths = [depth_at(angle[i]) for i, angle in enumerate(refined)]
     # the mid-plane within the face's depths: a face of a wide tilted layer may lie wholly before or after it
-    mid = jnp.clip(jnp.zeros_like(first), z_lo, z_hi)
-    cuts = jnp.stack([jnp.full_like(first, z_lo), jnp.minimum(first, mid),
-                      jnp.clip(mid, first, second), jnp.maximum(second, mid),
-                      jnp.full_like(first, z_hi)], axis=-2)  # sorted: z_lo <= kinks, mid <= z_hi
+    mid = jnp.clip(jnp.zeros_like(depths[0]), z_lo, z_hi)
+    ends = jnp.full_like(mid, z_lo)[..., None, :], jnp.full_like(mid, z_hi)[..., None, :]
+    inside = _sorted_three(*depths, mid) if mid_plane else _sorted_three(*depths)  # z_lo <= each <= z_hi
+    cuts = jnp.concatenate([ends[0], inside, ends[1]], axis=-2)
     if extra_cuts:
-        more = jnp.stack([jnp.clip(jnp.broadcast_to(c, first.shape), z_lo, z_hi) for c in extra_cuts], axis=-2)
+        more = jnp.stack([jnp.clip(jnp.broadcast_to(c, mid.shape), z_lo, z_hi) for c in extra_cuts], axis=-2)
         cuts = jnp.sort(jnp.concatenate([cuts, more], axis=-2), axis=-2)
     # Gauss-Legendre in the log of the lever (distance - z) on every piece: the grazing
     # angle to an edge goes like 1 / lever, which is far from polynomial in z at short
     # distances (the lever runs from distance - depth / 2 to distance + depth / 2).
     log_lever = jnp.log(distance_um - cuts)
-    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., DEPTH_PIECES, 1, e), negative
+    length = jnp.diff(log_lever, axis=-2)[..., None, :]  # (..., pieces, 1, e), negative
     unit_nodes, unit_weights = (np.asarray(v)[:, None] for v in (group.z_nodes, group.z_weights))
-    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., DEPTH_PIECES, n, e)
+    lever = jnp.exp(log_lever[..., :-1, None, :] + length * unit_nodes)  # (..., pieces, n, e)
     z, dz = distance_um - lever, -lever * length * unit_weights
     shape = aim_um.shape[:-1] + (-1, aim_um.shape[-1])
     return z.reshape(shape), dz.reshape(shape)
+
+
+def _sorted_three(first, second, third):
+    """The three arrays sorted elementwise, stacked on axis -2 (min-max network: XLA's sort is
+    a comparator loop on a CPU, several times slower here)."""
+    low, high = jnp.minimum(first, second), jnp.maximum(first, second)
+    return jnp.stack([jnp.minimum(low, third), jnp.clip(third, low, high), jnp.maximum(high, third)], axis=-2)
 
 
 def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, depth_um,
@@ -389,7 +398,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         return AngularMass(group.aperture, boundary + slope * z, slope, source_to_z, group.aperture_um, tilt,
                            floor, ceiling)
 
-    def nodes(kinks, aim, tilt=None, deflected=False, more_cuts=(), fresnel=False):
+    def nodes(kinks, aim, tilt=None, deflected=False, more_cuts=(), fresnel=False, mid_plane=True):
         """Depths z (..., N, e), weights x magnification, the aperture's view and grazing there."""
         if restrict is None:
             cuts = ()
@@ -398,7 +407,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
             cuts = _thin.face_cuts(restrict, aim, distance_um, z_lo, z_hi, (view.a_min, view.a_max),
                                    k[:, None] if deflected else None) + more_cuts
         z, dz = _kink_aligned_depths(lambda z: mass_at(z, tilt, deflected), kinks, aim, distance_um, z_lo, z_hi,
-                                     group, cuts)
+                                     group, cuts, mid_plane)
         node_tilt = None if tilt is None else tilt[..., None]
         return (z, dz * L / (L - distance_um + z), mass_at(z, node_tilt, deflected, fresnel),
                 aim[..., None, :] / (distance_um - z))
@@ -437,8 +446,13 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
                                                                             wavelength_weight, values)
         return values
 
+    # With Fresnel reflection (and no thin layer's restriction) the deflected and the transfer terms
+    # share one node set split at the kinks of both; neither jumps at the mid-plane (only ``stepped`` does)
+    shared = bool(group.fresnel_nodes) and limits is None
     if limits is None:
-        z, scale, mass, grazing = nodes(shifted(lambda m: deflected_kinks(m, k_l, right_of_interface)), aim_l, tilt)
+        kinks = deflected_and_fresnel_kinks if shared else deflected_kinks
+        z, scale, mass, grazing = nodes(shifted(lambda m: kinks(m, k_l, right_of_interface)), aim_l, tilt,
+                                        mid_plane=not shared)
         local = grazing if tilt is None else grazing - tilt[..., None]
         refracted, reflected = deflected_cumulative(mass, local, k_l[..., None])
     else:  # reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
@@ -451,10 +465,10 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     if tilt is not None:  # rays that meet their facet from behind pass straight
         refracted = refracted + mass.behind(grazing)
     deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
-    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks
-        z, scale, mass, grazing = nodes(shifted(lambda m: fresnel_kinks(m, k_l, right_of_interface)), aim_l, tilt,
-                                        fresnel=True)
-        local = grazing if tilt is None else grazing - tilt[..., None]
+    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam
+        if not shared:  # a thin layer's face: on nodes of their own kinks and limits
+            z, scale, mass, grazing = nodes(lambda m: fresnel_kinks(m, k_l, right_of_interface), aim_l, fresnel=True)
+            local = grazing
         gauss = (group.fresnel_nodes, group.fresnel_weights)
         if limits is None:
             lost, gained = fresnel_transfer(mass, local, k_l[..., None], *gauss)
