@@ -10,6 +10,7 @@ contrast get no kernel; zero-thickness layers are skipped.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Collection
@@ -22,7 +23,7 @@ from . import _registry as registry
 from ._errors import FwdfitError, ModelWarning
 from ._kernel import landing_range
 from ._limits import MAX_TILT_DEG, check_domain
-from ._model import ForwardModel, Interface, ModelParams, ProfileGroup
+from ._model import ForwardModel, Interface, ModelParams, ProfileGroup, _tilt_quantiles
 from ._scene import Scene
 from ._spectrum import BandSpectrum, GaussianLine, wavelength_quadrature
 from ._thin import ThinLayer
@@ -81,8 +82,9 @@ _MAX_ATTENUATION_NODES = 10
 # 20, 7.3e-4 at 34.4; the five-layer oxide, 0.5 mrad, 2 strata: 7.9e-4 at 12.2 mm, 5.7e-4 at
 # 34.4), so longer levers get the strata of the cap. At least _ROUGH_MIN_STRATA (one stratum left
 # the five-layer oxide with every face at 0.5 mrad 0.0019 RMS off at 1.1 mm, two 0.0006), the
-# largest tilt in RMS slopes that the kernel windows cover, and the head-room of a free
-# roughness over its start (at least _ROUGH_FREE_MIN_MRAD).
+# largest tilt in RMS slopes that profiles are grouped for (each group's windows then cover the
+# largest tilt its strata use, 1.7-2.9 RMS slopes), and the head-room of a free roughness over
+# its start (at least _ROUGH_FREE_MIN_MRAD).
 _ROUGH_MRAD_PER_STRATUM = 0.6
 _ROUGH_MIN_STRATA = 2
 _ROUGH_LEVER_UM = 2100.0
@@ -373,6 +375,14 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
     return margin * float(np.max(spread + depth_drift))
 
 
+def _window_bins(scene: Scene, instrument, spectrum, profile, margin: float, tilt_range_deg, rough_rad: float,
+                 bin_um: float, most: int, reach: float) -> int:
+    """Kernel window half-width in sub-bins of ``bin_um`` (at most ``most``) for rough faces whose
+    normals tilt up to ``reach`` x ``rough_rad`` (``_window_um``)."""
+    window_um = _window_um(scene, instrument, spectrum, profile, margin, tilt_range_deg, reach * rough_rad)
+    return min(math.ceil(window_um / bin_um) + 2, most)
+
+
 def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
     """Tabulated attenuation (n_lam, n_layer) 1/m of every layer at wavelengths lam (0 without a table)."""
     return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
@@ -462,7 +472,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     any_rough = any(face.rough for face in interfaces)
     plans: dict[_PlanKey, list[int]] = {}
     per_profile = []
-    depth_nodes, windows = {}, {}
+    depth_nodes, window_bins = {}, {}
     breaks_A = bragg_breaks_A(scene, accuracy)
     attenuation = {name: _face_attenuation(scene, wavelength_quadrature(scene.spectra[name], _STEP_WAVELENGTHS,
                                                                         breaks_A)[0])
@@ -480,10 +490,10 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         n_pad = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / bin_um)
         n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
         margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
-        window_um = _window_um(scene, instrument, spectrum, profile, margin, tilt_range_deg,
-                               1e-3 * rough_mrad * _ROUGH_REACH if any_rough else 0.0)
-        windows[i] = min(math.ceil(window_um / bin_um) + 2, (n_edges - 1) // 2)
-        window = min(_ladder(windows[i]), (n_edges - 1) // 2)  # the plan's class; its groups take what they need
+        # kernel window half-width (sub-bins) for rough faces' normals tilted up to ``reach`` RMS slopes
+        window_bins[i] = functools.partial(_window_bins, scene, instrument, spectrum, profile, margin, tilt_range_deg,
+                                           1e-3 * rough_mrad if any_rough else 0.0, bin_um, (n_edges - 1) // 2)
+        window = min(_ladder(window_bins[i](_ROUGH_REACH)), (n_edges - 1) // 2)  # the plan's class
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm,
                                          coupled=bool(thin), attenuation=attenuation[profile.spectrum])
         lam, weight = wavelength_quadrature(spectrum, n_lambda, breaks_A)
@@ -510,17 +520,19 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         angle_nodes, angle_weights = _unit_gauss(fresnel_nodes(accuracy, instrument.aperture)
                                                  if instrument.fresnel else 0)
         stack = lambda k: to_device(np.stack(_padded([per_profile[i][k] for i in index], k)))
+        wavelength_A = stack(1)
+        reach = float(np.max(np.abs(_tilt_quantiles(strata, wavelength_A.shape[1])))) if strata else 0.0
         groups.append(ProfileGroup(
             index=tuple(index), aperture=instrument.aperture,
             aperture_um=instrument.aperture_mm * 1e3,
             aperture_distance_um=instrument.aperture_distance_m * 1e6,
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
-            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=max(windows[i] for i in index),
+            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=max(window_bins[i](reach) for i in index),
             z_nodes=z_nodes, z_weights=z_weights, thin_nodes=thin_nodes, thin_weights=thin_weights,
             guided_cells=_GUIDED_CELLS if thin else 0, thin_z_nodes=thin_z_nodes, thin_z_weights=thin_z_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
             rough_strata=strata,
-            first_edge_um=stack(0), wavelength_A=stack(1), wavelength_weight=stack(2),
+            first_edge_um=stack(0), wavelength_A=wavelength_A, wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
             step_mu_table_per_m=stack(6)))
     return ForwardModel(groups=tuple(groups), interfaces=interfaces, n_profiles=len(scene.profiles),
