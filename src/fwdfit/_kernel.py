@@ -73,6 +73,7 @@ class AngularMass:
     def __init__(self, aperture: str, position_um, slope, source_um, aperture_um: float, tilt=None,
                  floor=None, ceiling=None):
         self._cdf, self._moment, _ = APERTURES[aperture]
+        self.square = aperture == "square"  # the mass is then quadratic in the angle (``fresnel_transfer``)
         to_source = 1.0 / source_um
         self.half_width = 0.5 * aperture_um * to_source  # rad, the angle it subtends / 2
         self.inverse_half_width = (2.0 / aperture_um) * source_um
@@ -212,9 +213,10 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, retu
     With v = |k| / (a + a2)^2 (v in (0, 1], 1 at the critical angle, or at a = 0 for
     k < 0) R = v^2 and a(v) = sqrt|k| (v^-1/2 + sign(k) v^1/2) / 2, so that, after an
     integration by parts against the mass M(a), int R dM = [R M] + int 2 v M(a(v)) dv:
-    smooth in v through the critical angle, polynomial in v for the square aperture
-    (exact with two nodes) and with a (.)^(3/2) end point at the circle's rim.
-    nodes, weights: Gauss-Legendre on [0, 1] (static tuples).
+    smooth in v through the critical angle, and with a (.)^(3/2) end point at the circle's rim.
+    nodes, weights: Gauss-Legendre on [0, 1] (static tuples). For the square aperture, whose
+    mass is quadratic in a, the integral is in closed form (``_square_reflected_mass``) where
+    no ``share`` weighs it.
     """
     k = jnp.where(jnp.abs(k) < _NO_CONTRAST, _NO_CONTRAST, k)  # a negligible transfer, finite in float32
     critical = _critical(mass, k)
@@ -229,6 +231,8 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, retu
     def reflected_mass(a_low, a_high, share=None):  # int_{a_low}^{a_high} R share dM, a_low <= a_high
         a_low, a_high = jnp.broadcast_arrays(a_low, a_high)
         v_low, v_high = v_at(a_low), v_at(a_high)  # v_high <= v_low
+        if share is None and mass.square:
+            return _square_reflected_mass(mass, k, root, v_low, v_high)
 
         def angle(v):
             s = jnp.sqrt(v)
@@ -256,6 +260,21 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, retu
               + reflected_mass(turn, _clip(below, turn, mass.a_max), stays))
     return (reflected_mass(critical, lost_up_to), gained,
             reflected_mass(_clip(beyond, turn, mass.a_max), mass.a_max, leaves))
+
+
+def _square_reflected_mass(mass: AngularMass, k, root, v_low, v_high):
+    """int R dM from v_low down to v_high (``fresnel_transfer``'s v) in closed form for the square
+    aperture, whose mass is dM = (a + tilt) da / (2 half-width) inside the fan: with
+    a(v) = root (v^-1/2 + sign(k) v^1/2) / 2, a da = |k| (1 - v^-2) dv / 8 and
+    da = root (sign(k) v^-1/2 - v^-3/2) dv / 4, so that int v^2 a da = |k| [v^3 / 3 - v] / 8
+    and int v^2 da = root [2 sign(k) v^5/2 / 5 - 2 v^3/2 / 3] / 4."""
+    cubic = lambda v: v * (v * v / 3.0 - 1.0)
+    integral = jnp.abs(k) / 8.0 * (cubic(v_high) - cubic(v_low))
+    if mass.tilt is not None:  # a rough face: rays cross at the global angle a + tilt
+        sign = jnp.sign(k)
+        half_powers = lambda v: v * jnp.sqrt(v) * (0.4 * sign * v - 2.0 / 3.0)
+        integral = integral + mass.tilt * root / 4.0 * (half_powers(v_high) - half_powers(v_low))
+    return 0.5 * mass.inverse_half_width * integral
 
 
 def landing_range(offset, half_width, k, fresnel: bool, xp=jnp):
