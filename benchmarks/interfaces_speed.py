@@ -4,12 +4,20 @@ graded layers on, against its sharp model.
     python benchmarks/interfaces_speed.py [--repeats 10] [--variants sharp,fresnel,...]
 
 Scene: tests/data/raytrace/oxide5_boa (five layers, six faces, BOA white beam, its profiles at
-1.1-10 mm). Variants: ``sharp`` (as stored), ``fresnel`` (``fresnel = true``), ``rough0.5`` and
+1.1, 12.2 and 34.4 mm). Variants: ``sharp`` (as stored), ``fresnel`` (``fresnel = true``), ``rough0.5`` and
 ``rough2`` (every face 0.5 or 2 mrad), ``graded`` (the inner oxides graded: SLD and mu x 0.8
 to x 1.2 across), ``all0.5`` and ``all2`` (Fresnel, every face rough, graded). Times one
 float64 evaluation of all profiles (T and T_att) after compilation, the compile time, and the
 number of operations in the compiled program's HLO text. Variants the checkout does not know
-(an older fwdfit) are skipped, so that the same command measures a baseline checkout.
+(an older fwdfit) are skipped, so that the same command measures a baseline checkout; issue 16's
+target compares against the sharp evaluation of the checkout it was filed on (dbf0b10):
+
+    git worktree add /tmp/pre16 dbf0b10
+    PYTHONPATH=/tmp/pre16/src python benchmarks/interfaces_speed.py --variants sharp \
+        --out benchmarks/results/interfaces_speed_dbf0b10.json
+    python benchmarks/interfaces_speed.py --baseline benchmarks/results/interfaces_speed_dbf0b10.json
+
+``--baseline`` adds each variant's cost against that file's sharp evaluation (``cost_vs_baseline``).
 Writes benchmarks/results/interfaces_speed.json (or ``--out``).
 """
 
@@ -81,7 +89,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="results of a baseline checkout (this script's JSON) whose sharp evaluation to compare with")
     args = parser.parse_args()
+    baseline = None
+    if args.baseline:
+        record = json.loads(args.baseline.read_text())
+        baseline = {"file": str(args.baseline), "load_average": record["load_average"],
+                    "sharp_evaluation_ms": next(r["evaluation_ms"] for r in record["rows"] if r["variant"] == "sharp")}
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -91,10 +106,12 @@ def main() -> None:
     for row in rows:
         if sharp and "evaluation_ms" in row:
             row["cost_vs_sharp"] = row["evaluation_ms"] / sharp["evaluation_ms"]
+        if baseline and "evaluation_ms" in row:
+            row["cost_vs_baseline"] = row["evaluation_ms"] / baseline["sharp_evaluation_ms"]
         print(json.dumps(row), flush=True)
     out = args.out or results_dir(False) / "interfaces_speed.json"
     out.write_text(json.dumps({"scene": str(SCENE.relative_to(ROOT)), "load_average": os.getloadavg(),
-                               "machine": machine_record(), "rows": rows}, indent=1) + "\n")
+                               "machine": machine_record(), "baseline": baseline, "rows": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
