@@ -34,8 +34,7 @@ from jaxtyping import Array, Float
 from . import _thin
 from ._aperture import APERTURES
 from ._kernel import (AngularMass, deflected_and_fresnel_kinks, deflected_cumulative, deflected_kinks, fresnel_kinks,
-                      fresnel_transfer,
-                      in_plane_frame, landing_range, straight_cumulative, straight_kinks)
+                      fresnel_transfer, in_plane_frame, landing_range, straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
 DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane
