@@ -370,8 +370,10 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     ``side`` holds, in the local frame where rays cross left to right: the boundary
     at z = 0, its slope, its z-centre, mu before and after (n_lam,),
     k = 2 (delta_after - delta_before) (n_lam,), the RMS slope of the face's normal
-    (rad) and its assignment plane (``_assignment_planes``). Each term is summed over depth nodes aligned with its own kinks
-    (``_kink_aligned_depths``). The kernel replaces the crossing rays' step assignment by
+    (rad) and its assignment plane (``_assignment_planes``). The straight and the deflected
+    terms are summed over depth nodes aligned with their own kinks (``_kink_aligned_depths``);
+    the Fresnel transfer shares the deflected terms' nodes, split at the kinks of both (a thin
+    layer's face: nodes of its own). The kernel replaces the crossing rays' step assignment by
     their true path in its own wavelength quadrature, so that an interface without
     contrast adds exactly nothing. A rough face's deflected rays are averaged over its
     normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
