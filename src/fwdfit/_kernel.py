@@ -277,7 +277,7 @@ def _square_reflected_mass(mass: AngularMass, k, root, v_low, v_high):
     return 0.5 * mass.inverse_half_width * integral
 
 
-def landing_range(offset, half_width, k, fresnel: bool, xp=jnp):
+def landing_range(offset, half_width, k, fresnel: bool, xp=jnp, tilt=None):
     """Outgoing grazing angles (lo, hi) (rad) of every ray that crosses the interface.
 
     offset, half_width: as in ``AngularMass`` (the crossing rays have grazing angles
@@ -287,15 +287,39 @@ def landing_range(offset, half_width, k, fresnel: bool, xp=jnp):
     at (angle * lever) from the interface's projection. fresnel: whether every
     crossing ray may be reflected (where there is contrast). xp: the array module
     (``jax.numpy`` in the model, ``numpy`` for the static plan, which must not
-    dispatch JAX operations).
+    dispatch JAX operations). tilt (rad, optional): a rough face whose normal tilts by up
+    to this much either way (``_rough_landing_range``).
     """
     a_min = xp.maximum(offset - half_width, 0.0)
     a_max = xp.maximum(offset + half_width, 0.0)
     root = xp.sqrt(xp.abs(k))
+    if tilt is not None:
+        return _rough_landing_range(a_min, a_max, k, root, fresnel, tilt, xp)
     reflected = -xp.minimum(a_max, root)  # the steepest totally reflected ray
     refracted = xp.sqrt(xp.maximum(a_min * a_min - k, 0.0))
     lo = xp.where(k > 0, xp.where(a_min < root, reflected, refracted), a_min)
     hi = xp.where(k > 0, a_max, xp.sqrt(a_max * a_max - xp.minimum(k, 0.0)))
     if fresnel:
         lo = xp.where(k != 0, -a_max, lo)
+    return lo, hi
+
+
+def _rough_landing_range(a_min, a_max, k, root, fresnel: bool, tilt, xp):
+    """``landing_range`` of a face whose normal tilts by t in [-tilt, tilt]: a ray at global angle
+    a meets the facet at a' = a - t and leaves at t - a' = 2 t - a when reflected (a' < sqrt(k),
+    or any a' > 0 with Fresnel reflection), at t + sqrt(a'^2 - k) when refracted, and at a when
+    it meets the facet from behind (a' <= 0). Totally reflected rays (t > a - sqrt(k)) leave
+    above max(2 t - a_max, t - sqrt(k), a - 2 sqrt(k)), partially reflected ones above
+    2 t - a_max. For k > 0 a refracted ray's angle falls as t grows, to a - sqrt(k) where the ray
+    meets the facet at its critical angle; for k < 0 it grows with t and never falls below a,
+    nor rises above its value at t = min(tilt, a_max) from a_max. Each bound is reached by some
+    ray; the window they set (``_plan._window_um``) is narrower than the sharp range widened by
+    2 tilt either way by at least tilt x lever."""
+    totally = xp.maximum(xp.maximum(-2.0 * tilt - a_max, -tilt - root), a_min - 2.0 * root)
+    reflected = xp.where(k != 0, -2.0 * tilt - a_max, totally) if fresnel else totally
+    above = xp.sqrt(xp.maximum(xp.square(a_min - tilt) - k, 0.0))  # from a_min at t = tilt, if not critical
+    refracted = xp.where(a_min - root <= tilt, xp.maximum(a_min - root, -tilt), tilt + above)
+    lo = xp.where(k > 0, xp.minimum(refracted, reflected), xp.minimum(a_min, reflected) if fresnel else a_min)
+    steepest = xp.minimum(tilt, a_max)
+    hi = xp.maximum(a_max, steepest + xp.sqrt(xp.square(a_max - steepest) + xp.maximum(-k, 0.0)))
     return lo, hi

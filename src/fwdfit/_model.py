@@ -504,6 +504,11 @@ def _tilt_quantiles(n_strata: int, n_lam: int) -> np.ndarray:
     return tilts / np.sqrt(np.mean(tilts**2))
 
 
+def largest_tilt(n_strata: int, n_lam: int) -> float:
+    """The largest |normal tilt| (RMS slopes) of a rough face's strata (``_tilt_quantiles``); 0 without."""
+    return float(np.max(np.abs(_tilt_quantiles(n_strata, n_lam)))) if n_strata else 0.0
+
+
 def _side_elements(group: ProfileGroup) -> int:
     """Kernel array elements of one crossing side: window edges x wavelength nodes x depth
     nodes x strata of a rough face's normal tilt."""
@@ -605,8 +610,9 @@ def _profile(group: ProfileGroup, model: ForwardModel, params: ModelParams, dist
         mu_after = interleave(mu[:, right], mu_end[:, left])
         b = boundary[position]
         landing_um = _landing_centre_um(group, *jax.lax.stop_gradient(
-            (b, slope, z_mid[position], 2.0 * (sld_after - sld_before) * jnp.max(delta_per_sld))),
-            sign, distance_um)
+            (b, slope, z_mid[position], 2.0 * (sld_after - sld_before) * jnp.max(delta_per_sld))), sign, distance_um,
+            jax.lax.stop_gradient(largest_tilt(group.rough_strata, len(wavelength_weight)) * slope_rms[position])
+            if rough else None)
         sides = (sign * b, sign * slope, z_mid[position], mu_before.T, mu_after.T,
                  2.0 * (sld_after - sld_before)[:, None] * delta_per_sld, slope_rms[position], plane[position])
         one_side = functools.partial(_crossing_kernel, group, distance_um=distance_um,
@@ -741,15 +747,16 @@ def _landing_bin(group: ProfileGroup, first_edge_um, landing_um):
     return (landing_um - first_edge_um) / group.bin_um
 
 
-def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um):
+def _landing_centre_um(group: ProfileGroup, b, slope, z_mid, k_longest, sign, distance_um, tilt_max=None):
     """Detector position (µm) at the middle of where the crossing rays of each side land.
 
     b, z_mid, k_longest, sign: per side (n_side,); the window is centred there, so
-    its half-width (``_plan``) need not grow with the tilt.
+    its half-width (``_plan``) need not grow with the tilt. tilt_max (rad, per side, or None):
+    a rough face's largest normal tilt (``largest_tilt``).
     """
     to_sample_um = group.aperture_distance_um - distance_um
     lo, hi = landing_range(sign * (b / to_sample_um - slope), 0.5 * group.aperture_um / to_sample_um,
-                           k_longest, bool(group.fresnel_nodes))
+                           k_longest, bool(group.fresnel_nodes), tilt=tilt_max)
     return b + slope * distance_um + sign * 0.5 * (lo + hi) * (distance_um - z_mid)
 
 

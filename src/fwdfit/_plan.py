@@ -23,7 +23,7 @@ from . import _registry as registry
 from ._errors import FwdfitError, ModelWarning
 from ._kernel import landing_range
 from ._limits import MAX_TILT_DEG, check_domain
-from ._model import ForwardModel, Interface, ModelParams, ProfileGroup, _tilt_quantiles
+from ._model import ForwardModel, Interface, ModelParams, ProfileGroup, largest_tilt
 from ._scene import Scene
 from ._spectrum import BandSpectrum, GaussianLine, wavelength_quadrature
 from ._thin import ThinLayer
@@ -356,8 +356,9 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
 
     The largest over every grazing offset of the aperture centre that the profile's
     positions and ``tilt_range_deg`` (low, high) allow, both crossing directions,
-    and the largest SLD contrast at the longest wavelength entering or leaving; a rough
-    face's rays leave up to 2 tilt_max_rad (its largest normal tilt) further out.
+    and the largest SLD contrast at the longest wavelength entering or leaving; with rough
+    faces, for normals tilted by up to tilt_max_rad (``landing_range``'s ``tilt``), whose
+    reflected rays leave up to 2 tilt_max_rad further out on one side only.
     """
     distance_um, depth_um = profile.distance_mm * 1e3, scene.sample.depth_mm * 1e3
     to_sample_um = instrument.aperture_distance_m * 1e6 - distance_um
@@ -369,8 +370,9 @@ def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
     slds = [0.0] + [l.density_scale * layer_value(l, key) for l in scene.sample.layers
                     for key in ("sld_e6_per_A2", "sld_end_e6_per_A2")]
     k_max = spectrum.support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi
-    lo, hi = landing_range(offsets, half_angle, np.array([k_max, -k_max]), instrument.fresnel, xp=np)
-    spread = (0.5 * (hi - lo) + 2.0 * tilt_max_rad) * (distance_um + 0.5 * depth_um)  # about the centre
+    lo, hi = landing_range(offsets, half_angle, np.array([k_max, -k_max]), instrument.fresnel, xp=np,
+                           tilt=tilt_max_rad if tilt_max_rad > 0 else None)
+    spread = 0.5 * (hi - lo) * (distance_um + 0.5 * depth_um)  # about the centre
     depth_drift = np.maximum(np.abs(lo), np.abs(hi)) * 0.5 * depth_um  # lever change along the depth
     return margin * float(np.max(spread + depth_drift))
 
@@ -521,7 +523,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
                                                  if instrument.fresnel else 0)
         stack = lambda k: to_device(np.stack(_padded([per_profile[i][k] for i in index], k)))
         wavelength_A = stack(1)
-        reach = float(np.max(np.abs(_tilt_quantiles(strata, wavelength_A.shape[1])))) if strata else 0.0
+        reach = largest_tilt(strata, wavelength_A.shape[1])
         groups.append(ProfileGroup(
             index=tuple(index), aperture=instrument.aperture,
             aperture_um=instrument.aperture_mm * 1e3,
