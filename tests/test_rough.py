@@ -325,21 +325,48 @@ def test_graded_data_need_a_graded_layer():
         assert values[name] == pytest.approx(value, rel=0.1), name
 
 
+def _oxide_every_term(roughness_mrad: float, distances_mm) -> fwdfit.Scene:
+    """The five-layer oxide at these distances with every face rough and Fresnel reflection on."""
+    scene = load_scene(DATA / "raytrace" / "oxide5_boa" / "scene.toml")
+    layers = tuple(dataclasses.replace(layer, roughness_mrad=roughness_mrad) for layer in scene.sample.layers)
+    scene = dataclasses.replace(
+        scene, profiles=tuple(p for p in scene.profiles if p.distance_mm in distances_mm),
+        instruments={k: dataclasses.replace(v, fresnel=True) for k, v in scene.instruments.items()},
+        sample=dataclasses.replace(scene.sample, layers=layers, left_roughness_mrad=roughness_mrad))
+    assert len(scene.profiles) == len(distances_mm)
+    return scene
+
+
 def test_slightly_rough_faces_meet_the_accuracy():
     """The five-layer oxide (BOA white beam, 1.1 and 34.4 mm) with every face at 0.5 mrad and
     Fresnel reflection on: the default model is within the default accuracy (1e-3 RMS in T) of
     the model converged in every node count (accuracy 1e-4). One stratum of the normal's tilt
-    left it 0.0019 off at 1.1 mm; the plan takes at least two (0.0006), and no more at 34.4 mm,
-    whose lever is beyond the plan's cap on the strata's growth (0.0006; 4 strata before the cap)."""
-    scene = load_scene(DATA / "raytrace" / "oxide5_boa" / "scene.toml")
-    layers = tuple(dataclasses.replace(layer, roughness_mrad=0.5) for layer in scene.sample.layers)
-    scene = dataclasses.replace(
-        scene, profiles=tuple(p for p in scene.profiles if p.distance_mm in (1.1, 34.4)),
-        instruments={k: dataclasses.replace(v, fresnel=True) for k, v in scene.instruments.items()},
-        sample=dataclasses.replace(scene.sample, layers=layers, left_roughness_mrad=0.5))
-    assert len(scene.profiles) == 2
+    left it 0.0019 off at 1.1 mm; the plan takes at least two (0.0008 at 1.1 mm, 0.0006 at 34.4)."""
+    scene = _oxide_every_term(0.5, (1.1, 34.4))
     evaluate = eqx.filter_jit(lambda model, params: model(params)[0])
     params = fwdfit.initial_params(scene)
     default, converged = (evaluate(fwdfit.build_model(scene, accuracy), params) for accuracy in (None, 1e-4))
     for T, T_converged in zip(default, converged):
         assert rms(np.asarray(T) - np.asarray(T_converged)) < 1e-3
+
+
+def test_strata_meet_the_accuracy_at_2_mrad(monkeypatch):
+    """The strata rule's count (strata x wavelength nodes, ``_plan._ROUGH_SAMPLES``) on the
+    five-layer oxide at 12.2 mm with every face at 2 mrad, Fresnel reflection on, BOA white beam
+    (4 strata of 16 wavelength nodes): within the default accuracy (1e-3 RMS in T; 9.2e-4 against
+    48 strata) of the same model with 8x the strata; half as many are not (2 strata: 2.0e-3)."""
+    import fwdfit._plan as plan
+
+    scene = _oxide_every_term(2.0, (12.2,))
+    evaluate = eqx.filter_jit(lambda model, params: model(params)[0][0])
+    params = fwdfit.initial_params(scene)
+    default = fwdfit.build_model(scene)
+    assert [group.rough_strata for group in default.groups] == [4]
+    monkeypatch.setattr(plan, "_ROUGH_SAMPLES", 8 * plan._ROUGH_SAMPLES)
+    many = fwdfit.build_model(scene)
+    monkeypatch.setattr(plan, "_ROUGH_SAMPLES", 0.5 * plan._ROUGH_SAMPLES / 8)
+    few = fwdfit.build_model(scene)
+    assert [group.rough_strata for group in many.groups] == [32] and [g.rough_strata for g in few.groups] == [2]
+    T_many = np.asarray(evaluate(many, params))
+    assert rms(np.asarray(evaluate(default, params)) - T_many) < 1e-3
+    assert rms(np.asarray(evaluate(few, params)) - T_many) > 1e-3

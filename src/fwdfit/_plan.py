@@ -72,23 +72,22 @@ _DEPTH_NODES_PER_LOG = 0.5
 # the nodes then miss, carry at most ~3e-3 of a pixel (mu x depth ~ 300), less either way.
 _DEPTH_NODES_PER_ATTENUATION = 4.0
 _MAX_ATTENUATION_NODES = 10
-# Rough faces: equiprobable strata of the normal's tilt (``_model._tilt_quantiles``), one per
-# this much RMS slope at accuracy 1e-3 and a lever of _ROUGH_LEVER_UM, more as the square root
-# of longer levers up to _ROUGH_LEVER_CAP_UM (the tilts move the landing rays by tilt x lever;
-# against the tracer, 2 mrad on a 4.6 Å line: 4 strata at 1.1 mm, 8 at 10 mm). Beyond ~10 mm
-# the error of a given number of strata stops growing, as the kernel spreads over more pixels
-# (measured against 48 strata, RMS of T: Al block, 4 Å line, 2 mrad, 8 strata: 9.8e-4 at 10 mm,
-# 1.2e-3 at 20, 9.2e-4 at 34.4; BOA white beam, 0.5 mrad, 2 strata: 9.6e-4 at 10 mm, 9.7e-4 at
-# 20, 7.3e-4 at 34.4; the five-layer oxide, 0.5 mrad, 2 strata: 7.9e-4 at 12.2 mm, 5.7e-4 at
-# 34.4), so longer levers get the strata of the cap. At least _ROUGH_MIN_STRATA (one stratum left
-# the five-layer oxide with every face at 0.5 mrad 0.0019 RMS off at 1.1 mm, two 0.0006), the
+# Rough faces: equiprobable strata of the normal's tilt (``_model._tilt_quantiles``). A stratum's
+# tilt differs at each wavelength node, so a face is sampled at strata x wavelength-node tilts,
+# and the RMS error in T falls like 1 / (that count), about as fast on a line as in a white beam:
+# against 48-64 strata, count x error was 0.031 at 0.5 mrad (BOA white beam, 10 mm, 2 strata),
+# 0.058-0.065 at 2 mrad (BOA white beam at 1.1 and 10 mm, 2-8 strata; the ICON line at 10 mm, 6-8
+# strata, 0.070 at 4; the five-layer oxide 0.030-0.059 at 1.1-34.4 mm) and 0.086 at 5 mrad (BOA
+# white beam, 10 mm, 6 strata): no longer at 34.4 mm than at 10, as the kernel spreads over more
+# pixels while the tilts move its rays further. So count = _ROUGH_SAMPLES x sqrt(RMS slope / mrad)
+# x 1e-3 / accuracy, rounded up to whole strata (those cases' errors at that count: 9.1e-4 to
+# 9.9e-4 at 0.5 and 2 mrad, 7.7e-4 at 5), and at least _ROUGH_MIN_STRATA (one stratum left the
+# five-layer oxide with every face at 0.5 mrad 0.0019 RMS off at 1.1 mm, two 0.0006). Below: the
 # largest tilt in RMS slopes that profiles are grouped for (each group's windows then cover the
-# largest tilt its strata use, 1.7-2.9 RMS slopes), and the head-room of a free roughness over
-# its start (at least _ROUGH_FREE_MIN_MRAD).
-_ROUGH_MRAD_PER_STRATUM = 0.6
+# largest tilt its strata use, 1.7-2.9 RMS slopes), and the head-room of a free roughness over its
+# start (at least _ROUGH_FREE_MIN_MRAD).
+_ROUGH_SAMPLES = 45.0
 _ROUGH_MIN_STRATA = 2
-_ROUGH_LEVER_UM = 2100.0
-_ROUGH_LEVER_CAP_UM = 11000.0
 _ROUGH_REACH = 3.0
 _ROUGH_FREE_MARGIN = 1.5
 _ROUGH_FREE_MIN_MRAD = 1.0
@@ -502,10 +501,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         first_edge = profile.x_um[0] - 0.5 * instrument.pixel_um - n_pad * bin_um
         strata = 0
         if any_rough:
-            lever_um = min(1e3 * (profile.distance_mm + 0.5 * scene.sample.depth_mm), _ROUGH_LEVER_CAP_UM)
-            lever = lever_um / _ROUGH_LEVER_UM
-            strata = max(_ROUGH_MIN_STRATA, math.ceil(rough_mrad / _ROUGH_MRAD_PER_STRATUM
-                                                      * math.sqrt(max(lever, 1.0) * 1e-3 / accuracy)))
+            samples = _ROUGH_SAMPLES * math.sqrt(rough_mrad) * 1e-3 / accuracy
+            strata = max(_ROUGH_MIN_STRATA, math.ceil(samples / len(lam) - 1e-9))
         key = _PlanKey(profile.instrument, n_edges, n_sub, n_pad, strata, window)
         plans.setdefault(key, []).append(i)
         depth_nodes[i] = n_z
