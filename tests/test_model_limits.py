@@ -347,17 +347,42 @@ def test_kernel_windows_hold_every_ray(tmp_path):
     """mu = 0 conserves intensity (|sum (T - 1) * pixel| < 1e-6 µm, of 4 to 9 µm displaced)
     at 34.4 mm for tilts 0, 0.24°, the widest-kernel tilt (±0.62°) and 1°: with windows
     sized for each tilt alone, and with one model whose tilt is free (windows for ±5°).
-    A window too narrow loses the rays outside it."""
+    A window too narrow loses the rays outside it. Two depth nodes per piece (accuracy 5e-4):
+    the kernels' crossing rays and the step assignment they replace are then integrated over the
+    depth to 1e-12 alike; the default's one node there (``_plan._ONE_NODE_LOG_RATIO``) conserves
+    to 5e-4 µm (1e-4 of what it displaces)."""
     scene = write_scene(tmp_path, [al_layer(mu=0.0)], profiles=[("d34.4mm", 34.4, -1500.0, 1500.0)],
                         spectrum=WHITE, tilt_deg=0.0, **BOA)
     params = fwdfit.initial_params(scene)
-    free = fwdfit.build_model(scene, free=("sample.tilt_deg",))
+    free = fwdfit.build_model(scene, 5e-4, free=("sample.tilt_deg",))
     for tilt in (0.0, 0.24, WIDEST_TILT_DEG, -WIDEST_TILT_DEG, 1.0):
-        fixed = fwdfit.build_model(scene, tilt_range_deg=(tilt, tilt))
+        fixed = fwdfit.build_model(scene, 5e-4, tilt_range_deg=(tilt, tilt))
         for model in (fixed, free):
             (T,), _ = _run(model, replace_params(params, tilt_deg=tilt))
             assert 0.5 * np.sum(np.abs(T - 1.0)) * PIXEL_UM > 1.0, tilt
             assert abs(np.sum(T - 1.0) * PIXEL_UM) < 1e-6, (tilt, model is free)
+        (T,), _ = _run(fwdfit.build_model(scene, tilt_range_deg=(tilt, tilt)), replace_params(params, tilt_deg=tilt))
+        assert abs(np.sum(T - 1.0) * PIXEL_UM) < 1e-3, tilt
+
+
+def test_one_depth_node_far_from_the_sample():
+    """From a lever ratio of e^0.1 (21 mm for 2 mm of depth) the plan takes one depth node per
+    piece where faces hardly absorb: the Al block at 0.24° on the ICON line with Fresnel
+    reflection (the worst case measured) is then within 5e-4 RMS of the converged model (accuracy
+    1e-4) in T and T_att at 21 and 34.4 mm; at 15 mm, or with mu x depth 0.5, it keeps two."""
+    profiles = [("d21mm", 21.0, -800.0, 800.0), ("d34.4mm", 34.4, -1000.0, 1000.0)]
+    scene = make_scene([al_layer(mu=9.06)], profiles=profiles, spectrum=LINE, tilt_deg=0.24, fresnel=True, **ICON)
+    model = fwdfit.build_model(scene)
+    assert {len(group.z_nodes) for group in model.groups} == {1}
+    params = fwdfit.initial_params(scene)
+    (T, T_att), (T_ref, T_att_ref) = _run(model, params), _run(fwdfit.build_model(scene, 1e-4), params)
+    for values, converged in ((T, T_ref), (T_att, T_att_ref)):
+        for got, want in zip(values, converged):
+            assert rms(got - want) < 5e-4
+    near = make_scene([al_layer()], profiles=[("d15mm", 15.0, -800.0, 800.0)], spectrum=LINE, **ICON)
+    absorbing = make_scene([al_layer(mu=250.0)], profiles=profiles, spectrum=LINE, **ICON)
+    for other in (near, absorbing):
+        assert {len(group.z_nodes) for group in fwdfit.build_model(other).groups} == {2}
 
 
 def test_a_window_over_one_edge_equals_the_whole_profile_there():

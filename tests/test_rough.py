@@ -145,6 +145,25 @@ def test_rough_landing_range_holds_every_ray():
         assert out.min() - lo <= 0.02 * (hi - lo) and hi - out.max() <= 0.02 * (hi - lo)
 
 
+def test_rough_kernel_windows_hold_every_ray():
+    """mu = 0 conserves intensity with rough faces (2 and 5 mrad, Fresnel on, BOA white beam,
+    34.4 mm, tilts 0 and 0.5°): |sum (T - 1) * pixel| < 1e-6 µm of 2-5 µm displaced. The windows
+    are set by the bounds of ``test_rough_landing_range_holds_every_ray``; a window too narrow
+    loses rays. Two depth nodes per piece (accuracy 5e-4), as in ``test_model_limits.py``'s test
+    of the sharp windows; the profile is wide enough for the 5 mrad kernels (±3 mm)."""
+    base = _with(load_scene(ROUGH / "rough2_boa" / "scene.toml"), fresnel=True)
+    block = dataclasses.replace(base.sample.layers[0], mu_per_m=0.0, mu_per_m_per_A=0.0)
+    profile = dataclasses.replace(base.profiles[0], name="d34.4mm", distance_mm=34.4,
+                                  x_um=np.arange(-2999.0, 3000.0, 2.4))
+    for roughness, tilt in ((2.0, 0.0), (5.0, 0.5)):
+        scene = _with(dataclasses.replace(base, profiles=(profile,), sample=dataclasses.replace(
+            base.sample, layers=(block,), tilt_deg=tilt)), roughness_mrad=roughness)
+        (T,), _ = eqx.filter_jit(fwdfit.build_model(scene, 5e-4))(fwdfit.initial_params(scene))
+        T = np.asarray(T)
+        assert 0.5 * np.sum(np.abs(T - 1.0)) * 2.4 > 1.0
+        assert abs(np.sum(T - 1.0) * 2.4) < 1e-6, (roughness, tilt)
+
+
 def test_zero_roughness_is_the_sharp_model():
     """Roughness 0 on the rough code path (a free roughness plans its faces rough) equals the
     sharp model to 1e-10; so does a graded layer whose ends are equal (graded code path)."""
