@@ -117,7 +117,6 @@ def _free_rough_scene(roughness_mrad=0.0):
 ROUGH_FREE = ("sample.left_roughness_mrad", "layers.Al.roughness_mrad")
 
 
-@pytest.mark.slow
 def test_rough_landing_range_holds_every_ray():
     """A rough face's window bounds (``landing_range`` with ``tilt``) hold the outgoing angle of
     every ray at every normal tilt, traced ray by ray: straight from behind the facet (a' <= 0),
@@ -164,6 +163,7 @@ def test_rough_kernel_windows_hold_every_ray():
         assert abs(np.sum(T - 1.0) * 2.4) < 1e-6, (roughness, tilt)
 
 
+@pytest.mark.slow
 def test_zero_roughness_is_the_sharp_model():
     """Roughness 0 on the rough code path (a free roughness plans its faces rough) equals the
     sharp model to 1e-10; so does a graded layer whose ends are equal (graded code path)."""

@@ -37,7 +37,7 @@ from ._kernel import (AngularMass, deflected_and_fresnel_kinks, deflected_cumula
                       fresnel_transfer, in_plane_frame, landing_range, straight_cumulative, straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
-DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane
+DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane, or three kinks
 # µm: a layer much thinner than this is transparent (the neutron's evanescent depth,
 # ~ lambda / (4 pi theta_c), is ~0.01 µm); see ``_vanishing``
 TUNNEL_UM = 0.02
@@ -324,7 +324,7 @@ def _kink_aligned_depths(mass_at, kinks, aim_um, distance_um, z_lo, z_hi, group:
     piece smooth, so the kernel is smooth in the parameters rather than piecewise linear.
     aim_um: (..., e) µm, one value per edge. extra_cuts: more depths (each broadcastable to
     aim_um) to split at, one more piece each (a thin layer's kinks). Two kinks and the
-    mid-plane make ``DEPTH_PIECES`` pieces.
+    mid-plane, or three kinks without it, make ``DEPTH_PIECES`` pieces.
     """
     def depth_at(angle):  # where the ray to the edge grazes at ``angle``; z_hi if never
         reaches = jnp.abs(angle) > _TINY_ANGLE
