@@ -304,6 +304,30 @@ def landing_range(offset, half_width, k, fresnel: bool, xp=jnp, tilt=None):
     return lo, hi
 
 
+def landing_regions(a_min, a_max, k, tilt=0.0, xp=jnp):
+    """Where the deflected rays of one wavelength and one normal tilt leave: two intervals of
+    outgoing grazing angles (rad), ((lo, hi) left, (lo, hi) right of the facet's projection).
+
+    a_min, a_max: the crossing rays' global grazing angles (``AngularMass`` without tilt); k as
+    in ``deflected_cumulative``; tilt (rad): the facet's normal tilt (0: a sharp face). Left: the
+    rays reflected, totally or partially (at t - a', a' = a - t), and those that meet the facet
+    from behind (a <= t, straight on). Right: the refracted ones (t + sqrt(a'^2 - k)). Outside
+    both every deflected cumulative is flat in the edge. The left interval is at most as wide as
+    the fan (a_max - a_min), the right one at most sqrt(a'_max^2 - a'_min^2), reached for
+    k = a'_min^2 (``_plan`` sizes the kernels' sub-windows with this). xp: as ``landing_range``.
+    An interval that holds no ray is returned as the other one."""
+    front_lo, front_hi = xp.maximum(a_min - tilt, 0.0), xp.maximum(a_max - tilt, 0.0)
+    meets, behind = front_hi > front_lo, tilt > a_min  # some rays meet the facet from the front / behind
+    left_lo = xp.where(meets, xp.where(behind, xp.minimum(tilt - front_hi, a_min), tilt - front_hi), a_min)
+    left_hi = xp.where(meets, tilt - front_lo, xp.minimum(a_max, tilt))
+    refracted_from = xp.maximum(front_lo, xp.sqrt(xp.maximum(k, 0.0)))
+    refracts = front_hi > refracted_from
+    right_lo = tilt + xp.sqrt(xp.maximum(refracted_from * refracted_from - k, 0.0))
+    right_hi = tilt + xp.sqrt(xp.maximum(front_hi * front_hi - k, 0.0))
+    left_lo, left_hi = xp.where(meets | behind, left_lo, right_lo), xp.where(meets | behind, left_hi, right_hi)
+    return (left_lo, left_hi), (xp.where(refracts, right_lo, left_lo), xp.where(refracts, right_hi, left_hi))
+
+
 def _rough_landing_range(a_min, a_max, k, root, fresnel: bool, tilt, xp):
     """``landing_range`` of a face whose normal tilts by t in [-tilt, tilt]: a ray at global angle
     a meets the facet at a' = a - t and leaves at t - a' = 2 t - a when reflected (a' < sqrt(k),

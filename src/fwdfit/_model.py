@@ -34,7 +34,8 @@ from jaxtyping import Array, Float
 from . import _thin
 from ._aperture import APERTURES
 from ._kernel import (AngularMass, deflected_and_fresnel_kinks, deflected_cumulative, deflected_kinks, fresnel_kinks,
-                      fresnel_transfer, in_plane_frame, landing_range, straight_cumulative, straight_kinks)
+                      fresnel_transfer, in_plane_frame, landing_range, landing_regions, straight_cumulative,
+                      straight_kinks)
 
 _TINY_ANGLE = 1e-12  # rad: a kink angle this small is never reached from the edge
 DEPTH_PIECES = 4  # smooth pieces of the depth integral: two kinks and the mid-plane, or three kinks
@@ -124,6 +125,10 @@ class ProfileGroup(eqx.Module):
     step_wavelength_A: Float[Array, "group fine"]  # finer nodes for the step profile's plateaus
     step_weight: Float[Array, "group fine"]
     step_mu_table_per_m: Float[Array, "group fine layer"]
+    # edges of each (tilt, wavelength) sample's two sub-windows of the deflected kernels (``_sub_windows``);
+    # (): the whole window
+    sub_window: tuple[int, ...] = eqx.field(static=True, default=())
+    straight_window: int = eqx.field(static=True, default=0)  # ... of the straight rays (0: the whole window)
 
 
 class ForwardModel(eqx.Module):
@@ -420,12 +425,21 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     def true_path(z):  # attenuation of a ray crossing at depth z: medium 1, then medium 2
         return jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z))
 
-    z, scale, mass, grazing = nodes(straight_kinks, aim)  # (N, e)
+    levers = (distance_um - z_hi, distance_um - z_lo)
+    fan = mass_at(jnp.stack([z_lo, z_hi]))
+    fan = jax.lax.stop_gradient((jnp.min(fan.a_min), jnp.max(fan.a_max)))  # over the whole depth
+    straight_aim, straight_spread = aim, lambda values: values
+    if group.straight_window and limits is None:  # the straight rays on a sub-window of their own
+        start = _covering_start(fan, group.straight_window, aim, levers)
+        straight_aim = aim[start + jnp.arange(group.straight_window)]
+        straight_spread = _spread((start,), (group.straight_window,), aim.shape[-1], lambda edge, on: on[0])
+    z, scale, mass, grazing = nodes(straight_kinks, straight_aim)  # (N, e)
     straight = straight_cumulative(mass, grazing)
     step = jnp.where(z > 0, wavelength_weight @ jnp.exp(-mu_from * depth_um),
                      wavelength_weight @ jnp.exp(-mu_to * depth_um))
-    stepped = jnp.sum(step * scale * straight, axis=-2)  # the step assignment of the crossing rays
-    attenuation = jnp.sum(jnp.tensordot(wavelength_weight, true_path(z), 1) * scale * straight, axis=-2) - stepped
+    stepped = straight_spread(jnp.sum(step * scale * straight, axis=-2))  # the step assignment of the crossing rays
+    attenuation = straight_spread(jnp.sum(jnp.tensordot(wavelength_weight, true_path(z), 1) * scale * straight,
+                                          axis=-2)) - stepped
     if not refracting:
         return attenuation, attenuation
     reflected_path = jnp.exp(-mu_from_l * depth_um)
@@ -433,19 +447,21 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     if rough:  # a leading axis of normal tilts (t, l, 1): nodes (t, l, N, e), sums (t, l, e)
         tilt = slope_rms * _tilt_quantiles(group.rough_strata, k.shape[0])[..., None]
         tilt_weight = np.full(group.rough_strata, 1.0 / group.rough_strata)
-        aim_l = jnp.broadcast_to(aim, tilt.shape[:1] + k.shape + aim.shape)
-        right_of_interface = aim_l > tilt * distance_um
         shifted = lambda kinks: lambda m: tuple(angle + tilt for angle in kinks(m))  # local -> global angles
     else:
         tilt = tilt_weight = None
-        aim_l = jnp.broadcast_to(aim, k.shape + aim.shape)  # (l, e)
-        right_of_interface = aim_l > 0
         shifted = lambda kinks: kinks
+    samples = k.shape if tilt is None else tilt.shape[:1] + k.shape  # (l,) or (t, l)
+    if group.sub_window and limits is None:  # each sample's deflected rays on sub-windows of their own
+        aim_l, spread = _sub_windows(group.sub_window, fan, 0.0 if tilt is None else tilt, k_l, aim, levers)
+    else:
+        aim_l, spread = jnp.broadcast_to(aim, samples + aim.shape), lambda values: values
+    right_of_interface = aim_l > (0.0 if tilt is None else tilt * distance_um)
 
     def summed(values):  # over tilts (if rough) and wavelengths: (..., l, e) -> (e,)
-        values = wavelength_weight @ values if tilt is None else jnp.einsum("t,l,tle->e", tilt_weight,
-                                                                            wavelength_weight, values)
-        return values
+        values = spread(values)
+        return wavelength_weight @ values if tilt is None else jnp.einsum("t,l,tle->e", tilt_weight,
+                                                                          wavelength_weight, values)
 
     # With Fresnel reflection (and no thin layer's restriction) the deflected and the transfer terms
     # share one node set split at the kinks of both; neither jumps at the mid-plane (only ``stepped`` does)
@@ -489,6 +505,49 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     return deflected - stepped, attenuation
 
 
+def _sub_windows(widths: tuple[int, int], fan, tilt, k, aim, levers):
+    """Two sub-windows of a side's window per (tilt, wavelength) sample, on which that sample's
+    deflected cumulatives are evaluated; elsewhere they are flat.
+
+    widths: edges of the sub-window of the rays that leave left and right of the facet's
+    projection (``_kernel.landing_regions``); fan: (a_min, a_max) rad, the crossing rays' global
+    grazing angles over the whole depth; tilt (t, l, 1) rad or 0; k (l, 1); aim (e,) µm, the
+    window's edges as in ``_crossing_kernel``; levers: the shortest and longest distance (µm)
+    from the face to the detector. Returns the sub-windows' edges' aims (..., sum(widths)), left
+    then right, and ``_spread`` from them to the window."""
+    regions = jax.lax.stop_gradient(landing_regions(*fan, k, tilt))
+    starts = [_covering_start(region, width, aim, levers) for region, width in zip(regions, widths)]
+    sub_aim = jnp.concatenate([aim[start + jnp.arange(width)] for start, width in zip(starts, widths)], axis=-1)
+    forwards = aim[1] > aim[0]  # a mirrored side's edges run backwards: the right region's rays land first
+
+    def pick(edge, on):  # the sub-window that comes first up to the other's start
+        return jnp.where(forwards, jnp.where(edge < starts[1], on[0], on[1]), jnp.where(edge < starts[0], on[1], on[0]))
+
+    return sub_aim, _spread(starts, widths, aim.shape[-1], pick)
+
+
+def _covering_start(region, width: int, aim, levers):
+    """First window edge (int, (...)) of a sub-window of ``width`` edges that holds the edges
+    at which rays leaving at grazing angles in ``region`` = (lo, hi) rad (each (...)) land from
+    every lever in ``levers`` (µm), with an edge to spare each side (``_plan`` sizes the width);
+    aim (e,) µm: the window's edges, as in ``_crossing_kernel``."""
+    lo, hi = region
+    reach = jnp.stack([angle * lever for angle in (lo, hi) for lever in levers])
+    first = jnp.floor(jnp.min((reach - aim[0]) / (aim[1] - aim[0]), axis=0)) - 1.0
+    return jnp.clip(first, 0, aim.shape[-1] - width).astype(jnp.int32)
+
+
+def _spread(starts, widths, n: int, pick):
+    """values on sub-windows (..., sum(widths)) starting at window edges ``starts`` (each
+    (..., 1) or ()) -> values on the window's n edges (..., n): a cumulative kernel is flat
+    outside the sub-windows, so each edge takes the value at its nearest edge of the sub-window
+    that ``pick(edge, per sub-window indices)`` chooses."""
+    edge = jnp.arange(n)
+    offsets = np.cumsum((0,) + tuple(widths[:-1]))
+    take = pick(edge, [o + jnp.clip(edge - s, 0, w - 1) for s, w, o in zip(starts, widths, offsets)])
+    return lambda values: jnp.take_along_axis(values, jnp.broadcast_to(take, values.shape[:-1] + (n,)), axis=-1)
+
+
 def _tilt_quantiles(n_strata: int, n_lam: int) -> np.ndarray:
     """Standard-normal tilts (n_strata, n_lam) of equal weight: stratum i of wavelength node j at
     probability (i + f_j) / n_strata, the fractions f_j spread over (0, 1) in van der Corput order,
@@ -510,9 +569,10 @@ def largest_tilt(n_strata: int, n_lam: int) -> float:
 
 
 def _side_elements(group: ProfileGroup) -> int:
-    """Kernel array elements of one crossing side: window edges x wavelength nodes x depth
-    nodes x strata of a rough face's normal tilt."""
-    return (2 * group.window + 1) * group.wavelength_A.shape[1] * len(group.z_nodes) * max(1, group.rough_strata)
+    """Kernel array elements of one crossing side: window (or sub-window) edges x wavelength
+    nodes x depth nodes x strata of a rough face's normal tilt."""
+    edges = sum(group.sub_window) if group.sub_window else 2 * group.window + 1
+    return edges * group.wavelength_A.shape[1] * len(group.z_nodes) * max(1, group.rough_strata)
 
 
 def _per_chunk(n: int, elements_each: int) -> int:

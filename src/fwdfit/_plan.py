@@ -21,7 +21,7 @@ import numpy as np
 
 from . import _registry as registry
 from ._errors import FwdfitError, ModelWarning
-from ._kernel import landing_range
+from ._kernel import landing_range, landing_regions
 from ._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup, largest_tilt
 from ._scene import Scene
@@ -33,6 +33,8 @@ _PSF_TRUNCATION_SIGMAS = 5.0
 _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected ray
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
+_TILT_GRID = 65  # normal tilts of a rough face at which the sub-windows' width is evaluated
+_SUB_WINDOW_SHARE = 0.8  # sub-windows only where they are at most this share of the window (both, if two)
 # The mid-plane step profile (the plateaus) costs little: its spectrum average uses this
 # many wavelength nodes at least (the plateau of a 2 mm Al block within 2e-5 of exact).
 _STEP_WAVELENGTHS = 64
@@ -366,26 +368,32 @@ def _kept_media(scene: Scene, free: Collection[str]) -> list[int]:
                   if l.thickness_um > 0 or free_thickness] + [len(layers) + 1]
 
 
-def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
-               tilt_range_deg: tuple[float, float], tilt_max_rad: float) -> float:
-    """Half-width (µm) around a side's landing centre (``_model``) that its kernel reaches.
-
-    The largest over every grazing offset of the aperture centre that the profile's
-    positions and ``tilt_range_deg`` (low, high) allow, both crossing directions,
-    and the largest SLD contrast at the longest wavelength entering or leaving; with rough
-    faces, for normals tilted by up to tilt_max_rad (``landing_range``'s ``tilt``), whose
-    reflected rays leave up to 2 tilt_max_rad further out on one side only.
-    """
+def _crossing_fans(scene: Scene, instrument, spectrum, profile, tilt_range_deg: tuple[float, float]):
+    """Every grazing offset (n, 1) of the aperture centre that the profile's positions and
+    ``tilt_range_deg`` (low, high) allow, both crossing directions; the aperture's half-angle
+    (rad); and the largest SLD contrast k at the longest wavelength entering or leaving."""
     distance_um, depth_um = profile.distance_mm * 1e3, scene.sample.depth_mm * 1e3
     to_sample_um = instrument.aperture_distance_m * 1e6 - distance_um
     half_angle = 0.5 * instrument.aperture_mm * 1e3 / (to_sample_um - 0.5 * depth_um)
     direction = np.array([profile.x_um[0], profile.x_um[-1]]) / to_sample_um
     slope = np.tan(np.radians(tilt_range_deg))
     offsets = np.linspace(direction.min() - slope.max(), direction.max() - slope.min(), _OFFSET_GRID)
-    offsets = np.concatenate([offsets, -offsets])[:, None]
     slds = [0.0] + [l.density_scale * layer_value(l, key) for l in scene.sample.layers
                     for key in ("sld_e6_per_A2", "sld_end_e6_per_A2")]
     k_max = spectrum.support_A[1] ** 2 * (max(slds) - min(slds)) * 1e-6 / math.pi
+    return np.concatenate([offsets, -offsets])[:, None], half_angle, k_max
+
+
+def _window_um(scene: Scene, instrument, spectrum, profile, margin: float,
+               tilt_range_deg: tuple[float, float], tilt_max_rad: float) -> float:
+    """Half-width (µm) around a side's landing centre (``_model``) that its kernel reaches.
+
+    The largest over the crossing fans of ``_crossing_fans`` and the largest SLD contrast; with
+    rough faces, for normals tilted by up to tilt_max_rad (``landing_range``'s ``tilt``), whose
+    reflected rays leave up to 2 tilt_max_rad further out on one side only.
+    """
+    distance_um, depth_um = profile.distance_mm * 1e3, scene.sample.depth_mm * 1e3
+    offsets, half_angle, k_max = _crossing_fans(scene, instrument, spectrum, profile, tilt_range_deg)
     lo, hi = landing_range(offsets, half_angle, np.array([k_max, -k_max]), instrument.fresnel, xp=np,
                            tilt=tilt_max_rad if tilt_max_rad > 0 else None)
     spread = 0.5 * (hi - lo) * (distance_um + 0.5 * depth_um)  # about the centre
@@ -399,6 +407,28 @@ def _window_bins(scene: Scene, instrument, spectrum, profile, margin: float, til
     normals tilt up to ``reach`` x ``rough_rad`` (``_window_um``)."""
     window_um = _window_um(scene, instrument, spectrum, profile, margin, tilt_range_deg, reach * rough_rad)
     return min(math.ceil(window_um / bin_um) + 2, most)
+
+
+def _sub_window_edges(scene: Scene, instrument, spectrum, profile, margin: float, tilt_range_deg, rough_rad: float,
+                      bin_um: float, reach: float) -> tuple[int, int, int]:
+    """Edges of the sub-windows on which the kernels are evaluated (``_model._sub_windows``):
+    each (tilt, wavelength) sample's deflected rays left and right of its facet's projection, and
+    the straight rays. The widest ``_kernel.landing_regions`` over the crossing fans of
+    ``_crossing_fans``, normals tilted up to ``reach`` x ``rough_rad``, and every contrast up to the
+    largest (the right-hand region is widest at k = a'_min^2); and the widest fan. Each seen from
+    every depth, with ``margin`` and an edge to spare each side."""
+    distance_um, depth_um = profile.distance_mm * 1e3, scene.sample.depth_mm * 1e3
+    offsets, half_angle, k_max = _crossing_fans(scene, instrument, spectrum, profile, tilt_range_deg)
+    a_min, a_max = np.maximum(offsets - half_angle, 0.0), np.maximum(offsets + half_angle, 0.0)
+    reach_um = lambda lo, hi: float(np.max((hi - lo) * (distance_um + depth_um)
+                                           + np.maximum(np.abs(lo), np.abs(hi)) * depth_um))
+    widest = [0.0, 0.0, reach_um(a_min, a_max)]
+    for t in np.linspace(-1.0, 1.0, _TILT_GRID if rough_rad > 0 else 1) * reach * rough_rad:
+        critical = np.minimum(np.square(np.maximum(a_min - t, 0.0)), k_max)
+        for k in (k_max, -k_max, critical):
+            for side, region in enumerate(landing_regions(a_min, a_max, k, t, xp=np)):
+                widest[side] = max(widest[side], reach_um(*region))
+    return tuple(math.ceil(margin * w / bin_um) + 4 for w in widest)
 
 
 def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
@@ -490,7 +520,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     any_rough = any(face.rough for face in interfaces)
     plans: dict[_PlanKey, list[int]] = {}
     per_profile = []
-    depth_nodes, window_bins = {}, {}
+    depth_nodes, window_bins, sub_edges = {}, {}, {}
     breaks_A = bragg_breaks_A(scene, accuracy)
     attenuation = {name: _face_attenuation(scene, wavelength_quadrature(scene.spectra[name], _STEP_WAVELENGTHS,
                                                                         breaks_A)[0])
@@ -509,8 +539,11 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         n_edges = len(profile.x_um) * n_sub + 2 * n_pad + 1
         margin = _WINDOW_MARGIN_FREE if free else _WINDOW_MARGIN
         # kernel window half-width (sub-bins) for rough faces' normals tilted up to ``reach`` RMS slopes
+        rough_rad = 1e-3 * rough_mrad if any_rough else 0.0
         window_bins[i] = functools.partial(_window_bins, scene, instrument, spectrum, profile, margin, tilt_range_deg,
-                                           1e-3 * rough_mrad if any_rough else 0.0, bin_um, (n_edges - 1) // 2)
+                                           rough_rad, bin_um, (n_edges - 1) // 2)
+        sub_edges[i] = functools.partial(_sub_window_edges, scene, instrument, spectrum, profile, margin,
+                                         tilt_range_deg, rough_rad, bin_um)
         window = min(_ladder(window_bins[i](_ROUGH_REACH)), (n_edges - 1) // 2)  # the plan's class
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm,
                                          coupled=bool(thin), attenuation=attenuation[profile.spectrum])
@@ -538,16 +571,21 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         stack = lambda k: to_device(np.stack(_padded([per_profile[i][k] for i in index], k)))
         wavelength_A = stack(1)
         reach = largest_tilt(strata, wavelength_A.shape[1])
+        window = max(window_bins[i](reach) for i in index)
+        *sub_window, straight_window = (max(edges) for edges in zip(*(sub_edges[i](reach) for i in index)))
+        n_window = 2 * window + 1
         groups.append(ProfileGroup(
             index=tuple(index), aperture=instrument.aperture,
             aperture_um=instrument.aperture_mm * 1e3,
             aperture_distance_um=instrument.aperture_distance_m * 1e6,
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, bin_um=instrument.pixel_um / n_sub,
-            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=max(window_bins[i](reach) for i in index),
+            n_edges=n_edges, n_sub=n_sub, n_pad=n_pad, window=window,
             z_nodes=z_nodes, z_weights=z_weights, thin_nodes=thin_nodes, thin_weights=thin_weights,
             guided_cells=_GUIDED_CELLS if thin else 0, thin_z_nodes=thin_z_nodes, thin_z_weights=thin_z_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
             rough_strata=strata,
+            sub_window=tuple(sub_window) if sum(sub_window) <= _SUB_WINDOW_SHARE * n_window else (),
+            straight_window=straight_window if straight_window <= _SUB_WINDOW_SHARE * n_window else 0,
             first_edge_um=stack(0), wavelength_A=wavelength_A, wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
             step_mu_table_per_m=stack(6)))
