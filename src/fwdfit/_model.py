@@ -432,7 +432,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     if group.straight_window and limits is None:  # the straight rays on a sub-window of their own
         start = _covering_start(fan, group.straight_window, aim, levers)
         straight_aim = aim[start + jnp.arange(group.straight_window)]
-        straight_spread = _spread((start,), (group.straight_window,), aim.shape[-1], lambda edge, on: on[0])
+        straight_spread = _spread(start, group.straight_window, aim.shape[-1])
     z, scale, mass, grazing = nodes(straight_kinks, straight_aim)  # (N, e)
     straight = straight_cumulative(mass, grazing)
     step = jnp.where(z > 0, wavelength_weight @ jnp.exp(-mu_from * depth_um),
@@ -452,78 +452,97 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         tilt = tilt_weight = None
         shifted = lambda kinks: kinks
     samples = k.shape if tilt is None else tilt.shape[:1] + k.shape  # (l,) or (t, l)
-    if group.sub_window and limits is None:  # each sample's deflected rays on sub-windows of their own
-        aim_l, spread = _sub_windows(group.sub_window, fan, 0.0 if tilt is None else tilt, k_l, aim, levers)
-    else:
-        aim_l, spread = jnp.broadcast_to(aim, samples + aim.shape), lambda values: values
-    right_of_interface = aim_l > (0.0 if tilt is None else tilt * distance_um)
 
     def summed(values):  # over tilts (if rough) and wavelengths: (..., l, e) -> (e,)
-        values = spread(values)
         return wavelength_weight @ values if tilt is None else jnp.einsum("t,l,tle->e", tilt_weight,
                                                                           wavelength_weight, values)
 
-    # With Fresnel reflection (and no thin layer's restriction) the deflected and the transfer terms
-    # share one node set split at the kinks of both; neither jumps at the mid-plane (only ``stepped`` does)
-    shared = bool(group.fresnel_nodes) and limits is None
     if limits is None:
-        kinks = deflected_and_fresnel_kinks if shared else deflected_kinks
-        z, scale, mass, grazing = nodes(shifted(lambda m: kinks(m, k_l, right_of_interface)), aim_l, tilt,
-                                        mid_plane=not shared)
-        local = grazing if tilt is None else grazing - tilt[..., None]
-        refracted, reflected = deflected_cumulative(mass, local, k_l[..., None])
-    else:  # reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
-        reflect_l, guided_l = restrict[2][:, None], restrict[3][:, None]
-        z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, right_of_interface), aim_l,
-                                        deflected=True,
-                                        more_cuts=(distance_um + aim_l / jnp.maximum(guided_l, _thin.TINY),))
-        refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
-                                                    reflect_l[..., None], guided_l[..., None])
-    if tilt is not None:  # rays that meet their facet from behind pass straight
-        refracted = refracted + mass.behind(grazing)
+        deflected = summed(_deflected_rays(group, nodes, true_path, reflected_path, k_l, tilt, shifted, samples, fan,
+                                           aim, levers, distance_um))
+        return deflected - stepped, attenuation
+    # a thin layer's face: reflected up to reflect_k, refracted only up to the outgoing angle limits(z)[2]
+    aim_l = jnp.broadcast_to(aim, samples + aim.shape)
+    right_of_interface = aim_l > 0.0
+    reflect_l, guided_l = restrict[2][:, None], restrict[3][:, None]
+    z, scale, mass, grazing = nodes(lambda m: deflected_kinks(m, reflect_l, right_of_interface), aim_l,
+                                    deflected=True,
+                                    more_cuts=(distance_um + aim_l / jnp.maximum(guided_l, _thin.TINY),))
+    refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
+                                                reflect_l[..., None], guided_l[..., None])
     deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
-    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam
-        if not shared:  # a thin layer's face: on nodes of their own kinks and limits
-            z, scale, mass, grazing = nodes(lambda m: fresnel_kinks(m, k_l, right_of_interface), aim_l, fresnel=True)
-            local = grazing
-        gauss = (group.fresnel_nodes, group.fresnel_weights)
-        if limits is None:
-            lost, gained = fresnel_transfer(mass, local, k_l[..., None], *gauss)
-            reflected = reflected_path * gained
-        else:  # rays reflected at a thin layer's second face above ``turn`` cross it back into its A
-            w, forward = restrict[:2]
-            k_ab, mu_a = (v.reshape(per_lam) for v in restrict[4:6])
-            turn = jnp.where(forward, mass.a_max, jnp.maximum(w / jnp.maximum(z_hi - z, _thin.TINY),
-                                                              _thin.root(jnp.maximum(-k_ab, 0.0))))
-            beyond = _thin.angle_landing_at(aim_l[..., None, :], distance_um - z, w, k_ab, 1, -1, turn, mass.a_max)
-            leaves = lambda a: 1.0 - _thin.reflectivity(_thin.root(a * a + k_ab), a)
-            below = (aim_l[..., None, :] + 2.0 * w) / (distance_um - z)  # landing a lever - 2 w
-            lost, gained, returned = fresnel_transfer(mass, local, k_l[..., None], *gauss,
-                                                      (turn, beyond, leaves, below))
-            reflected = reflected_path * gained + jnp.exp(-mu_from_l * (z - z_lo) - mu_a * (z_hi - z)) * returned
+    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks and limits
+        z, scale, mass, grazing = nodes(lambda m: fresnel_kinks(m, k_l, right_of_interface), aim_l, fresnel=True)
+        # rays reflected at a thin layer's second face above ``turn`` cross it back into its A
+        w, forward = restrict[:2]
+        k_ab, mu_a = (v.reshape(per_lam) for v in restrict[4:6])
+        turn = jnp.where(forward, mass.a_max, jnp.maximum(w / jnp.maximum(z_hi - z, _thin.TINY),
+                                                          _thin.root(jnp.maximum(-k_ab, 0.0))))
+        beyond = _thin.angle_landing_at(aim_l[..., None, :], distance_um - z, w, k_ab, 1, -1, turn, mass.a_max)
+        leaves = lambda a: 1.0 - _thin.reflectivity(_thin.root(a * a + k_ab), a)
+        below = (aim_l[..., None, :] + 2.0 * w) / (distance_um - z)  # landing a lever - 2 w
+        lost, gained, returned = fresnel_transfer(mass, grazing, k_l[..., None], group.fresnel_nodes,
+                                                  group.fresnel_weights, (turn, beyond, leaves, below))
+        reflected = reflected_path * gained + jnp.exp(-mu_from_l * (z - z_lo) - mu_a * (z_hi - z)) * returned
         deflected = deflected + summed(jnp.sum((reflected - true_path(z) * lost) * scale, axis=-2))
     return deflected - stepped, attenuation
 
 
+def _deflected_rays(group: ProfileGroup, nodes, true_path, reflected_path, k, tilt, shifted, samples, fan, aim,
+                    levers, distance_um):
+    """The deflected rays of a face (no thin layer's) landing left of each window edge, per
+    sample (..., l, e): refracted, reflected (with Fresnel reflection, partially too) and, on a
+    rough face, passing behind its facets; each term on the depth nodes of ``nodes`` split at the
+    kinks of all. tilt (t, l, 1) rad or None; k (l, 1); aim (e,) µm as in ``_crossing_kernel``; fan,
+    levers: as ``_sub_windows``. With the group's ``sub_window`` the rays that leave left of the
+    facet's projection and those that leave right of it are each evaluated on a sub-window of
+    their own (``_sub_windows``), flat beyond it; else both on the whole window."""
+    kinks = deflected_and_fresnel_kinks if group.fresnel_nodes else deflected_kinks
+
+    def landed(aim_part, left: bool = True, right: bool = True):  # (..., l, e_part)
+        if left and right:  # the kinks of the rays landing there: those leaving on that side of the facet
+            right_of_interface = aim_part > (0.0 if tilt is None else tilt * distance_um)
+        else:  # of one side's rays only: beyond their region every cut then lies at an end of the depth
+            right_of_interface = jnp.full(aim_part.shape, right)
+        z, scale, mass, grazing = nodes(shifted(lambda m: kinks(m, k, right_of_interface)), aim_part, tilt,
+                                        mid_plane=not group.fresnel_nodes)  # neither jumps there (``stepped`` does)
+        local = grazing if tilt is None else grazing - tilt[..., None]
+        refracted, reflected = deflected_cumulative(mass, local, k[..., None])
+        if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam
+            lost, gained = fresnel_transfer(mass, local, k[..., None], group.fresnel_nodes, group.fresnel_weights)
+            refracted, reflected = refracted - lost, reflected + gained
+        total = 0.0
+        if left:
+            total = reflected_path * reflected
+            if tilt is not None:  # rays that meet their facet from behind pass straight
+                total = total + true_path(z) * mass.behind(grazing)
+        if right:
+            total = total + true_path(z) * refracted
+        return jnp.sum(total * scale, axis=-2)
+
+    if not group.sub_window:
+        return landed(jnp.broadcast_to(aim, samples + aim.shape))
+    (left, spread_left), (right, spread_right) = _sub_windows(group.sub_window, fan, 0.0 if tilt is None else tilt,
+                                                              k, aim, levers)
+    return spread_left(landed(left, right=False)) + spread_right(landed(right, left=False))
+
+
 def _sub_windows(widths: tuple[int, int], fan, tilt, k, aim, levers):
-    """Two sub-windows of a side's window per (tilt, wavelength) sample, on which that sample's
-    deflected cumulatives are evaluated; elsewhere they are flat.
+    """Two sub-windows of a side's window per (tilt, wavelength) sample: the edges at which the
+    sample's deflected rays leaving left of its facet's projection land, and those of the rays
+    leaving right of it (``_kernel.landing_regions``), from every depth.
 
-    widths: edges of the sub-window of the rays that leave left and right of the facet's
-    projection (``_kernel.landing_regions``); fan: (a_min, a_max) rad, the crossing rays' global
-    grazing angles over the whole depth; tilt (t, l, 1) rad or 0; k (l, 1); aim (e,) µm, the
-    window's edges as in ``_crossing_kernel``; levers: the shortest and longest distance (µm)
-    from the face to the detector. Returns the sub-windows' edges' aims (..., sum(widths)), left
-    then right, and ``_spread`` from them to the window."""
+    widths: their edges (``_plan`` sizes them for the widest); fan: (a_min, a_max) rad, the
+    crossing rays' global grazing angles over the whole depth; tilt (t, l, 1) rad or 0; k (l, 1);
+    aim (e,) µm, the window's edges as in ``_crossing_kernel``; levers: the shortest and longest
+    distance (µm) from the face to the detector. Returns per sub-window its edges' aims (..., width)
+    and ``_spread`` from it to the window."""
     regions = jax.lax.stop_gradient(landing_regions(*fan, k, tilt))
-    starts = [_covering_start(region, width, aim, levers) for region, width in zip(regions, widths)]
-    sub_aim = jnp.concatenate([aim[start + jnp.arange(width)] for start, width in zip(starts, widths)], axis=-1)
-    forwards = aim[1] > aim[0]  # a mirrored side's edges run backwards: the right region's rays land first
-
-    def pick(edge, on):  # the sub-window that comes first up to the other's start
-        return jnp.where(forwards, jnp.where(edge < starts[1], on[0], on[1]), jnp.where(edge < starts[0], on[1], on[0]))
-
-    return sub_aim, _spread(starts, widths, aim.shape[-1], pick)
+    out = []
+    for region, width in zip(regions, widths):
+        start = _covering_start(region, width, aim, levers)
+        out.append((aim[start + jnp.arange(width)], _spread(start, width, aim.shape[-1])))
+    return out
 
 
 def _covering_start(region, width: int, aim, levers):
@@ -537,14 +556,11 @@ def _covering_start(region, width: int, aim, levers):
     return jnp.clip(first, 0, aim.shape[-1] - width).astype(jnp.int32)
 
 
-def _spread(starts, widths, n: int, pick):
-    """values on sub-windows (..., sum(widths)) starting at window edges ``starts`` (each
-    (..., 1) or ()) -> values on the window's n edges (..., n): a cumulative kernel is flat
-    outside the sub-windows, so each edge takes the value at its nearest edge of the sub-window
-    that ``pick(edge, per sub-window indices)`` chooses."""
-    edge = jnp.arange(n)
-    offsets = np.cumsum((0,) + tuple(widths[:-1]))
-    take = pick(edge, [o + jnp.clip(edge - s, 0, w - 1) for s, w, o in zip(starts, widths, offsets)])
+def _spread(start, width: int, n: int):
+    """values of a cumulative kernel at a sub-window's ``width`` edges (..., width) from window edge
+    ``start`` (int, (..., 1) or ()) -> at the window's n edges (..., n). The kernel is flat
+    outside the sub-window: each edge takes the value of its nearest edge of the sub-window."""
+    take = jnp.clip(jnp.arange(n) - start, 0, width - 1)
     return lambda values: jnp.take_along_axis(values, jnp.broadcast_to(take, values.shape[:-1] + (n,)), axis=-1)
 
 

@@ -34,7 +34,6 @@ _WINDOW_MARGIN = 1.05  # kernel windows: head-room over the furthest deflected r
 _WINDOW_MARGIN_FREE = 1.25  # more head-room when parameters move during a fit
 _OFFSET_GRID = 2049  # grazing offsets at which the kernel windows' reach is evaluated
 _TILT_GRID = 65  # normal tilts of a rough face at which the sub-windows' width is evaluated
-_SUB_WINDOW_SHARE = 0.8  # sub-windows only where they are at most this share of the window (both, if two)
 # The mid-plane step profile (the plateaus) costs little: its spectrum average uses this
 # many wavelength nodes at least (the plateau of a 2 mm Al block within 2e-5 of exact).
 _STEP_WAVELENGTHS = 64
@@ -584,8 +583,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             guided_cells=_GUIDED_CELLS if thin else 0, thin_z_nodes=thin_z_nodes, thin_z_weights=thin_z_weights,
             fresnel_nodes=angle_nodes, fresnel_weights=angle_weights,
             rough_strata=strata,
-            sub_window=tuple(sub_window) if sum(sub_window) <= _SUB_WINDOW_SHARE * n_window else (),
-            straight_window=straight_window if straight_window <= _SUB_WINDOW_SHARE * n_window else 0,
+            sub_window=tuple(sub_window) if sum(sub_window) <= n_window else (),  # no more edges than the window
+            straight_window=straight_window if straight_window < n_window else 0,
             first_edge_um=stack(0), wavelength_A=wavelength_A, wavelength_weight=stack(2),
             mu_table_per_m=stack(3), step_wavelength_A=stack(4), step_weight=stack(5),
             step_mu_table_per_m=stack(6)))
