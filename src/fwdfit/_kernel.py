@@ -126,24 +126,31 @@ def _critical(mass: AngularMass, k):
     return _clip(_safe_sqrt(k) * (k > 0), mass.a_min, mass.a_max)
 
 
-def deflected_cumulative(mass: AngularMass, grazing_at_edge, k, reflect_k=None, floor=None):
+def deflected_cumulative(mass: AngularMass, grazing_at_edge, k, reflect_k=None, floor=None, side=None):
     """Refracted plus totally reflected crossing rays landing left of each edge.
 
     k = 2 (delta_2 - delta_1) (dimensionless, broadcastable); refracted rays leave
     at a2 = sqrt(a^2 - k) > 0, reflected ones at -a. reflect_k: rays with a^2 below
     it are reflected (default k; larger where a face behind a thin layer reflects them).
     floor: only rays above this angle (those below are a thin layer's guided rays).
-    Returns (refracted, reflected) cumulative masses.
+    Returns (refracted, reflected) cumulative masses; with ``side`` (bool, broadcastable) one
+    of them per edge, the refracted where side is True.
     """
     a_min = mass.a_min if floor is None else _clip(floor, mass.a_min, mass.a_max)
     reflect_k = k if reflect_k is None else reflect_k
     critical = _clip(_safe_sqrt(reflect_k) * (reflect_k > 0), a_min, mass.a_max)
     positive = jnp.maximum(grazing_at_edge, 0.0)
     incoming = _safe_sqrt(positive * positive + k)
-    refracted = mass.between(critical, _clip(incoming, critical, mass.a_max))
-    reflected_from = _clip(-grazing_at_edge, a_min, critical)
-    reflected = mass.between(reflected_from, critical)
-    return refracted, reflected
+    refracted = (critical, _clip(incoming, critical, mass.a_max))
+    reflected = (_clip(-grazing_at_edge, a_min, critical), critical)
+    return _between_by_side(mass.between, refracted, reflected, side)
+
+
+def _between_by_side(between, first, second, side):
+    """between(*first), between(*second); with ``side`` one call, first where side is True."""
+    if side is None:
+        return between(*first), between(*second)
+    return between(*(jnp.where(side, a, b) for a, b in zip(first, second)))
 
 
 # Kinks: the grazing angles at an edge at which a cumulative's clips switch. At a fixed
@@ -197,7 +204,7 @@ def _sided_kinks(right, left, right_of_interface):
     return tuple(jnp.where(right_of_interface, a, b) for a, b in zip(right, left))
 
 
-def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, returning=None):
+def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, returning=None, side=None):
     """Crossing rays that Fresnel reflection moves from the refracted to the reflected beam.
 
     Of the rays above the critical angle (every ray for k <= 0) a fraction R(a) =
@@ -209,6 +216,8 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, retu
     through its first face (those above ``beyond`` land left of the edge), the rest is reflected
     there too and leaves the back inside the layer (those below ``below`` land left of the
     edge). Returns (loss, gain, returned) then, gain those below ``turn`` and the latter.
+    side (bool, broadcastable; not with ``returning``): one of (loss, gain) per edge, the loss where
+    side is True.
 
     With v = |k| / (a + a2)^2 (v in (0, 1], 1 at the critical angle, or at a = 0 for
     k < 0) R = v^2 and a(v) = sqrt|k| (v^-1/2 + sign(k) v^1/2) / 2, so that, after an
@@ -252,7 +261,7 @@ def fresnel_transfer(mass: AngularMass, grazing_at_edge, k, nodes, weights, retu
         return at_high * (mass.primitive(a_high) - base) + (v_low - v_high) * integral
 
     if returning is None:
-        return reflected_mass(critical, lost_up_to), reflected_mass(gained_from, mass.a_max)
+        return _between_by_side(reflected_mass, (critical, lost_up_to), (gained_from, mass.a_max), side)
     turn, beyond, leaves, below = returning
     turn = _clip(turn, critical, mass.a_max)
     stays = lambda a: 1.0 - leaves(a)

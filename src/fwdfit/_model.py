@@ -499,32 +499,36 @@ def _deflected_rays(group: ProfileGroup, nodes, true_path, reflected_path, k, ti
     their own (``_sub_windows``), flat beyond it; else both on the whole window."""
     kinks = deflected_and_fresnel_kinks if group.fresnel_nodes else deflected_kinks
 
-    def landed(aim_part, left: bool = True, right: bool = True):  # (..., l, e_part)
-        if left and right:  # the kinks of the rays landing there: those leaving on that side of the facet
-            right_of_interface = aim_part > (0.0 if tilt is None else tilt * distance_um)
-        else:  # of one side's rays only: beyond their region every cut then lies at an end of the depth
-            right_of_interface = jnp.full(aim_part.shape, right)
+    def landed(aim_part, side=None):  # (..., l, e_part)
+        """side (e_part,) bool: per edge, only the rays leaving right (True) or left of the facet,
+        split at their own kinks (beyond their region every cut then lies at an end of the depth);
+        None: all rays, split at the kinks of those leaving on the side of the facet an edge is on."""
+        right_of_interface = (aim_part > (0.0 if tilt is None else tilt * distance_um) if side is None
+                              else jnp.broadcast_to(side, aim_part.shape))
         z, scale, mass, grazing = nodes(shifted(lambda m: kinks(m, k, right_of_interface)), aim_part, tilt,
                                         mid_plane=not group.fresnel_nodes)  # neither jumps there (``stepped`` does)
         local = grazing if tilt is None else grazing - tilt[..., None]
-        refracted, reflected = deflected_cumulative(mass, local, k[..., None])
-        if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam
-            lost, gained = fresnel_transfer(mass, local, k[..., None], group.fresnel_nodes, group.fresnel_weights)
-            refracted, reflected = refracted - lost, reflected + gained
-        total = 0.0
-        if left:
-            total = reflected_path * reflected
-            if tilt is not None:  # rays that meet their facet from behind pass straight
-                total = total + true_path(z) * mass.behind(grazing)
-        if right:
-            total = total + true_path(z) * refracted
+        cumulative = deflected_cumulative(mass, local, k[..., None], side=side)  # (refracted, reflected) or either
+        path = (true_path(z), reflected_path)
+        if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam: (lost, gained) or either
+            moved = fresnel_transfer(mass, local, k[..., None], group.fresnel_nodes, group.fresnel_weights, side=side)
+            cumulative = (cumulative[0] - moved[0], cumulative[1] + moved[1]) if side is None else \
+                cumulative + jnp.where(side, -moved, moved)
+        if side is None:
+            total = path[0] * cumulative[0] + path[1] * cumulative[1]
+        else:
+            total = jnp.where(side, path[0], path[1]) * cumulative
+        if tilt is not None:  # rays that meet their facet from behind pass straight (left of it)
+            behind = path[0] * mass.behind(grazing)
+            total = total + (behind if side is None else jnp.where(side, 0.0, behind))
         return jnp.sum(total * scale, axis=-2)
 
     if not group.sub_window:
         return landed(jnp.broadcast_to(aim, samples + aim.shape))
     (left, spread_left), (right, spread_right) = _sub_windows(group.sub_window, fan, 0.0 if tilt is None else tilt,
                                                               k, aim, levers)
-    return spread_left(landed(left, right=False)) + spread_right(landed(right, left=False))
+    values = landed(jnp.concatenate([left, right], axis=-1), np.arange(sum(group.sub_window)) >= group.sub_window[0])
+    return spread_left(values[..., :group.sub_window[0]]) + spread_right(values[..., group.sub_window[0]:])
 
 
 def _sub_windows(widths: tuple[int, int], fan, tilt, k, aim, levers):
