@@ -189,8 +189,10 @@ def test_no_absorption_conserves_intensity(wide_models, setup):
     For distances 1.1, 8.5, 34.4 mm and tilts 0, 0.24, 0.5°: |sum| < 1e-6 µm while the
     displaced intensity (half of sum |T - 1| * pixel) is 1.8 to 11 µm; measured |sum| below
     3e-14 µm (the kernels are differences of cumulative masses, so every quadrature node
-    conserves exactly when its window holds all its rays). T_att is 1 everywhere."""
+    conserves exactly when its window holds all its rays; the BOA kernels' sub-windows, sized
+    for 34.4 mm, must hold them from 1.1 mm on too). T_att is 1 everywhere."""
     model, params = wide_models[setup]
+    assert setup == "icon_al" or model.groups[0].sub_window  # sized for 34.4 mm, used from 1.1 mm on
     zeros = np.zeros_like(np.asarray(params.mu_per_m))
     for distance in (1.1, 8.5, 34.4):
         for tilt in (0.0, 0.24, 0.5):
@@ -346,7 +348,8 @@ WIDEST_TILT_DEG = math.degrees(10.0 * math.sqrt(2.078e-6 / math.pi) + 20.0 / (75
 def test_kernel_windows_hold_every_ray(tmp_path):
     """mu = 0 conserves intensity (|sum (T - 1) * pixel| < 1e-6 µm, of 4 to 9 µm displaced)
     at 34.4 mm for tilts 0, 0.24°, the widest-kernel tilt (±0.62°) and 1°: with windows
-    sized for each tilt alone, and with one model whose tilt is free (windows for ±5°).
+    sized for each tilt alone, and with one model whose tilt is free (windows for ±5°), and
+    each wavelength's kernels on sub-windows of their own (``_model._sub_windows``).
     A window too narrow loses the rays outside it. Two depth nodes per piece (accuracy 5e-4):
     the kernels' crossing rays and the step assignment they replace are then integrated over the
     depth to 1e-12 alike; the default's one node there (``_plan._ONE_NODE_LOG_RATIO``) conserves
@@ -355,6 +358,7 @@ def test_kernel_windows_hold_every_ray(tmp_path):
                         spectrum=WHITE, tilt_deg=0.0, **BOA)
     params = fwdfit.initial_params(scene)
     free = fwdfit.build_model(scene, 5e-4, free=("sample.tilt_deg",))
+    assert free.groups[0].sub_window and free.groups[0].straight_window  # the kernels' own sub-windows too
     for tilt in (0.0, 0.24, WIDEST_TILT_DEG, -WIDEST_TILT_DEG, 1.0):
         fixed = fwdfit.build_model(scene, 5e-4, tilt_range_deg=(tilt, tilt))
         for model in (fixed, free):

@@ -144,11 +144,44 @@ def test_rough_landing_range_holds_every_ray():
         assert out.min() - lo <= 0.02 * (hi - lo) and hi - out.max() <= 0.02 * (hi - lo)
 
 
+def test_landing_regions_hold_every_ray():
+    """Each (tilt, wavelength) sample's sub-windows (``landing_regions``) hold the outgoing angle of
+    every ray of their side, traced ray by ray at sharp and tilted facets: left of the facet's
+    projection those reflected (totally, or partially with Fresnel reflection: any ray meeting the
+    facet) and those meeting the facet from behind (straight on), right of it the refracted ones.
+    The bounds are reached (within 1e-9 rad: the fan's ends, the ray along the facet and the critical ray are traced) and within the widths
+    the plan sizes the sub-windows for: the fan on the left, sqrt(a'_max^2 - a'_min^2) on the right."""
+    from fwdfit._kernel import landing_regions
+
+    rng = np.random.default_rng(17)
+    for _ in range(300):
+        offset, half_width = rng.uniform(-2e-3, 8e-3), rng.uniform(2.5e-3, 4e-3)  # some rays cross
+        k = rng.choice([-1, 1]) * rng.uniform(0, 1.5e-4)
+        tilt = rng.choice([0.0, rng.uniform(-8e-3, 8e-3)])
+        a_min, a_max = max(offset - half_width, 0.0), max(offset + half_width, 0.0)
+        regions = landing_regions(a_min, a_max, k, tilt, xp=np)
+        a = np.linspace(a_min, a_max, 2001)
+        # the rays along the facet and at its critical angle (those leave along it)
+        a = np.concatenate([a] + [[v] for v in (tilt, tilt + np.sqrt(max(k, 0.0))) if a_min < v < a_max])
+        local = a - tilt
+        front = local >= 0  # the ray along the facet on both sides: the limit of each
+        refracted = front & (local**2 >= k - 1e-18)  # the critical ray, within rounding
+        rays = (np.concatenate([a[local <= 0], (tilt - local)[front]]),
+                tilt + np.sqrt(np.maximum(local**2 - k, 0.0))[refracted])
+        for out, (lo, hi) in zip(rays, regions):
+            if out.size:
+                assert lo - 1e-12 <= out.min() <= lo + 1e-9 and hi - 1e-9 <= out.max() <= hi + 1e-12, (offset, k, tilt)
+        front_lo, front_hi = max(a_min - tilt, 0.0), max(a_max - tilt, 0.0)
+        assert regions[0][1] - regions[0][0] <= a_max - a_min + 1e-12
+        if refracted.any():  # else it is the left one, for no ray
+            assert regions[1][1] - regions[1][0] <= np.sqrt(front_hi**2 - front_lo**2) + 1e-12
+
+
 def test_rough_kernel_windows_hold_every_ray():
     """mu = 0 conserves intensity with rough faces (2 and 5 mrad, Fresnel on, BOA white beam,
     34.4 mm, tilts 0 and 0.5°): |sum (T - 1) * pixel| < 1e-6 µm of 2-5 µm displaced. The windows
-    are set by the bounds of ``test_rough_landing_range_holds_every_ray``; a window too narrow
-    loses rays. Two depth nodes per piece (accuracy 5e-4), as in ``test_model_limits.py``'s test
+    are set by the bounds of ``test_rough_landing_range_holds_every_ray`` and each sample's
+    sub-windows by those of ``test_landing_regions_hold_every_ray``; a window too narrow loses rays. Two depth nodes per piece (accuracy 5e-4), as in ``test_model_limits.py``'s test
     of the sharp windows; the profile is wide enough for the 5 mrad kernels (±3 mm)."""
     base = _with(load_scene(ROUGH / "rough2_boa" / "scene.toml"), fresnel=True)
     block = dataclasses.replace(base.sample.layers[0], mu_per_m=0.0, mu_per_m_per_A=0.0)
@@ -157,7 +190,9 @@ def test_rough_kernel_windows_hold_every_ray():
     for roughness, tilt in ((2.0, 0.0), (5.0, 0.5)):
         scene = _with(dataclasses.replace(base, profiles=(profile,), sample=dataclasses.replace(
             base.sample, layers=(block,), tilt_deg=tilt)), roughness_mrad=roughness)
-        (T,), _ = eqx.filter_jit(fwdfit.build_model(scene, 5e-4))(fwdfit.initial_params(scene))
+        model = fwdfit.build_model(scene, 5e-4)
+        assert model.groups[0].sub_window and model.groups[0].straight_window  # each sample on its sub-windows
+        (T,), _ = eqx.filter_jit(model)(fwdfit.initial_params(scene))
         T = np.asarray(T)
         assert 0.5 * np.sum(np.abs(T - 1.0)) * 2.4 > 1.0
         assert abs(np.sum(T - 1.0) * 2.4) < 1e-6, (roughness, tilt)
