@@ -380,7 +380,9 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     the Fresnel transfer shares the deflected terms' nodes, split at the kinks of both (a thin
     layer's face: nodes of its own). The kernel replaces the crossing rays' step assignment by
     their true path in its own wavelength quadrature, so that an interface without
-    contrast adds exactly nothing. A rough face's deflected rays are averaged over its
+    contrast adds exactly nothing. With the group's ``straight_window`` and ``sub_window`` (not
+    for a thin layer's face) the straight and the deflected rays are evaluated only on the edges
+    where they land (``_covering_start``, ``_deflected_rays``). A rough face's deflected rays are averaged over its
     normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
     leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
     straight (``AngularMass``). restrict: a face of a coupled thin layer keeps only some
