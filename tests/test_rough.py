@@ -149,8 +149,9 @@ def test_landing_regions_hold_every_ray():
     every ray of their side, traced ray by ray at sharp and tilted facets: left of the facet's
     projection those reflected (totally, or partially with Fresnel reflection: any ray meeting the
     facet) and those meeting the facet from behind (straight on), right of it the refracted ones.
-    The bounds are reached (within 1e-9 rad: the fan's ends, the ray along the facet and the critical ray are traced) and within the widths
-    the plan sizes the sub-windows for: the fan on the left, sqrt(a'_max^2 - a'_min^2) on the right."""
+    The bounds are reached (within 1e-9 rad: the fan's ends, the ray along the facet and the
+    critical ray are traced) and within the widths the plan sizes the sub-windows for: the fan
+    on the left, sqrt(a'_max^2 - a'_min^2) on the right."""
     from fwdfit._kernel import landing_regions
 
     rng = np.random.default_rng(17)
@@ -178,11 +179,12 @@ def test_landing_regions_hold_every_ray():
 
 
 def test_rough_kernel_windows_hold_every_ray():
-    """mu = 0 conserves intensity with rough faces (2 and 5 mrad, Fresnel on, BOA white beam,
-    34.4 mm, tilts 0 and 0.5°): |sum (T - 1) * pixel| < 1e-6 µm of 2-5 µm displaced. The windows
-    are set by the bounds of ``test_rough_landing_range_holds_every_ray`` and each sample's
-    sub-windows by those of ``test_landing_regions_hold_every_ray``; a window too narrow loses rays. Two depth nodes per piece (accuracy 5e-4), as in ``test_model_limits.py``'s test
-    of the sharp windows; the profile is wide enough for the 5 mrad kernels (±3 mm)."""
+    """mu = 0 conserves intensity with rough faces (2 and 5 mrad, Fresnel on, BOA white beam, 34.4 mm,
+    tilts 0 and 0.5°): |sum (T - 1) * pixel| < 1e-6 µm of 2-5 µm displaced. The windows are set
+    by the bounds of ``test_rough_landing_range_holds_every_ray`` and each sample's sub-windows
+    by those of ``test_landing_regions_hold_every_ray``; a window too narrow loses rays. Two
+    depth nodes per piece (accuracy 5e-4), as in ``test_model_limits.py``'s test of the sharp
+    windows; the profile is wide enough for the 5 mrad kernels (±3 mm)."""
     base = _with(load_scene(ROUGH / "rough2_boa" / "scene.toml"), fresnel=True)
     block = dataclasses.replace(base.sample.layers[0], mu_per_m=0.0, mu_per_m_per_A=0.0)
     profile = dataclasses.replace(base.profiles[0], name="d34.4mm", distance_mm=34.4,

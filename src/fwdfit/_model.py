@@ -382,10 +382,10 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     their true path in its own wavelength quadrature, so that an interface without
     contrast adds exactly nothing. With the group's ``straight_window`` and ``sub_window`` (not
     for a thin layer's face) the straight and the deflected rays are evaluated only on the edges
-    where they land (``_covering_start``, ``_deflected_rays``). A rough face's deflected rays are averaged over its
-    normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face at a' = a - t,
-    leave at t + (the sharp face's outgoing angle at a'), and those with a <= t pass
-    straight (``AngularMass``). restrict: a face of a coupled thin layer keeps only some
+    where they land (``_covering_start``, ``_deflected_rays``). A rough face's deflected rays
+    are averaged over its normal's tilt (``_tilt_quantiles``): at tilt t the rays meet the face
+    at a' = a - t, leave at t + (the sharp face's outgoing angle at a'), and those with a <= t
+    pass straight (``AngularMass``). restrict: a face of a coupled thin layer keeps only some
     of its rays (``_thin.face_limits``; not rough): (w, forward, reflect_k, guided angle, k_AB,
     mu_A) of its layer B between A and C; with Fresnel reflection the rays its second face
     reflects cross B back into A (``_kernel.fresnel_transfer``'s ``returning``).
@@ -473,7 +473,7 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
     refracted, reflected = deflected_cumulative(mass, jnp.minimum(grazing, limits(z)[2]), k_l[..., None],
                                                 reflect_l[..., None], guided_l[..., None])
     deflected = summed(jnp.sum((true_path(z) * refracted + reflected_path * reflected) * scale, axis=-2))
-    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks and limits
+    if group.fresnel_nodes:  # rays moved from the refracted to the reflected beam, on nodes of their own kinks
         z, scale, mass, grazing = nodes(lambda m: fresnel_kinks(m, k_l, right_of_interface), aim_l, fresnel=True)
         # rays reflected at a thin layer's second face above ``turn`` cross it back into its A
         w, forward = restrict[:2]
@@ -492,13 +492,14 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
 
 def _deflected_rays(group: ProfileGroup, nodes, true_path, reflected_path, k, tilt, shifted, samples, fan, aim,
                     levers, distance_um):
-    """The deflected rays of a face (no thin layer's) landing left of each window edge, per
-    sample (..., l, e): refracted, reflected (with Fresnel reflection, partially too) and, on a
-    rough face, passing behind its facets; each term on the depth nodes of ``nodes`` split at the
-    kinks of all. tilt (t, l, 1) rad or None; k (l, 1); aim (e,) µm as in ``_crossing_kernel``; fan,
-    levers: as ``_sub_windows``. With the group's ``sub_window`` the rays that leave left of the
-    facet's projection and those that leave right of it are each evaluated on a sub-window of
-    their own (``_sub_windows``), flat beyond it; else both on the whole window."""
+    """The deflected rays of a face (no thin layer's) landing left of each window edge, per sample
+    (..., l, e): refracted, reflected (with Fresnel reflection, partially too) and, on a rough
+    face, passing behind its facets; on the depth nodes of ``nodes``, split at the kinks of the
+    side of the facet the rays leave on (``landed``). tilt (t, l, 1) rad or None; k (l, 1); aim
+    (e,) µm as in ``_crossing_kernel``; fan, levers: as ``_sub_windows``. With the group's
+    ``sub_window`` the rays that leave left of the facet's projection and those that leave right
+    of it are each evaluated on a sub-window of their own (``_sub_windows``), flat beyond it;
+    else both on the whole window."""
     kinks = deflected_and_fresnel_kinks if group.fresnel_nodes else deflected_kinks
 
     def landed(aim_part, side=None):  # (..., l, e_part)
