@@ -419,7 +419,7 @@ def _sub_window_edges(scene: Scene, instrument, spectrum, profile, margin: float
     distance_um, depth_um = profile.distance_mm * 1e3, scene.sample.depth_mm * 1e3
     offsets, half_angle, k_max = _crossing_fans(scene, instrument, spectrum, profile, tilt_range_deg)
     a_min, a_max = np.maximum(offsets - half_angle, 0.0), np.maximum(offsets + half_angle, 0.0)
-    stack_um = sum(layer.thickness_um for layer in scene.sample.layers)
+    stack_um = np.nansum([layer.thickness_um for layer in scene.sample.layers])  # a free one left out: 0
     lever_um = distance_um + 0.5 * depth_um + 0.5 * stack_um * np.sin(np.radians(np.max(np.abs(tilt_range_deg))))
     reach_um = lambda lo, hi: float(np.max((hi - lo) * lever_um + np.maximum(np.abs(lo), np.abs(hi)) * depth_um))
     widest = [0.0, 0.0, reach_um(a_min, a_max)]
