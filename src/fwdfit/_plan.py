@@ -520,7 +520,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     any_rough = any(face.rough for face in interfaces)
     plans: dict[_PlanKey, list[int]] = {}
     per_profile = []
-    depth_nodes, window_bins, sub_edges = {}, {}, {}
+    depth_nodes, window_bins, sub_edges, sub_edges_by_geometry = {}, {}, {}, {}
     breaks_A = bragg_breaks_A(scene, accuracy)
     attenuation = {name: _face_attenuation(scene, wavelength_quadrature(scene.spectra[name], _STEP_WAVELENGTHS,
                                                                         breaks_A)[0])
@@ -542,8 +542,10 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         rough_rad = 1e-3 * rough_mrad if any_rough else 0.0
         window_bins[i] = functools.partial(_window_bins, scene, instrument, spectrum, profile, margin, tilt_range_deg,
                                            rough_rad, bin_um, (n_edges - 1) // 2)
-        sub_edges[i] = functools.partial(_sub_window_edges, scene, instrument, spectrum, profile, margin,
-                                         tilt_range_deg, rough_rad, bin_um)
+        # profiles alike (an image's rows) share one evaluation: on rough faces it takes tens of ms
+        geometry = (profile.instrument, profile.spectrum, profile.distance_mm, profile.x_um[0], profile.x_um[-1])
+        sub_edges[i] = sub_edges_by_geometry.setdefault(geometry, functools.cache(functools.partial(
+            _sub_window_edges, scene, instrument, spectrum, profile, margin, tilt_range_deg, rough_rad, bin_um)))
         window = min(_ladder(window_bins[i](_ROUGH_REACH)), (n_edges - 1) // 2)  # the plan's class
         n_lambda, n_z = quadrature_sizes(accuracy, spectrum, profile.distance_mm, scene.sample.depth_mm,
                                          coupled=bool(thin), attenuation=attenuation[profile.spectrum])
