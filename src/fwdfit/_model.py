@@ -428,8 +428,10 @@ def _crossing_kernel(group: ProfileGroup, side, distance_um, wavelength_weight, 
         return jnp.exp(-mu_from_l * (z - z_lo) - mu_to_l * (z_hi - z))
 
     levers = (distance_um - z_hi, distance_um - z_lo)
-    fan = mass_at(jnp.stack([z_lo, z_hi]))
-    fan = jax.lax.stop_gradient((jnp.min(fan.a_min), jnp.max(fan.a_max)))  # over the whole depth
+    fan = None
+    if limits is None and (group.straight_window or group.sub_window):  # the crossing rays over the whole depth
+        ends = mass_at(jnp.stack([z_lo, z_hi]))
+        fan = jax.lax.stop_gradient((jnp.min(ends.a_min), jnp.max(ends.a_max)))
     straight_aim, straight_spread = aim, lambda values: values
     if group.straight_window and limits is None:  # the straight rays on a sub-window of their own
         start = _covering_start(fan, group.straight_window, aim, levers)
