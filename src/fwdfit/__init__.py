@@ -5,49 +5,68 @@ writes one) -> ``build_model`` + ``initial_params`` ->
 ``ForwardModel(params)`` gives (T, T_att) per profile -> ``fit`` -> result.
 """
 
-from ._cache import enable_compilation_cache as enable_compilation_cache
-from ._errors import FwdfitError as FwdfitError
-from ._errors import ModelWarning as ModelWarning
-from ._fit import FitResult as FitResult
-from ._fit import FittedProfile as FittedProfile
-from ._fit import Fitter as Fitter
-from ._fit import fit as fit
-from ._fit_output import write_fit as write_fit
-from ._image_fit import ImageFit as ImageFit
-from ._image_fit import fit_image as fit_image
-from ._image_output import write_image_fit as write_image_fit
-from ._materials import MaterialConstants as MaterialConstants
-from ._materials import constants_from_formula as constants_from_formula
-from ._materials import constants_from_ncrystal as constants_from_ncrystal
-from ._model import ForwardModel as ForwardModel
-from ._model import ModelParams as ModelParams
-from ._paganin import paganin_filter_1d as paganin_filter_1d
-from ._paganin import paganin_filter_2d as paganin_filter_2d
-from ._paganin import paganin_tau_um2 as paganin_tau_um2
-from ._paganin import paganin_tau_um2_spectrum as paganin_tau_um2_spectrum
-from ._paganin import paganin_thickness_um as paganin_thickness_um
-from ._plan import build_model as build_model
-from ._plan import initial_params as initial_params
-from ._radiograph import profile_from_stacks as profile_from_stacks
-from ._reference import ReferenceLayer as ReferenceLayer
-from ._reference import trace_reference as trace_reference
-from ._reference import trace_reference_rows as trace_reference_rows
-from ._sample import Posterior as Posterior
-from ._sample import sample as sample
-from ._scene import FitSpec as FitSpec
-from ._scene import Instrument as Instrument
-from ._scene import Layer as Layer
-from ._scene import Profile as Profile
-from ._scene import Sample as Sample
-from ._scene import Scene as Scene
-from ._scene import load_scene as load_scene
-from ._scene import pixel_grid as pixel_grid
-from ._scene_toml import dump_scene as dump_scene
-from ._scene_toml import save_scene as save_scene
-from ._spectrum import BandSpectrum as BandSpectrum
-from ._spectrum import GaussianLine as GaussianLine
-from ._spectrum import TabulatedSpectrum as TabulatedSpectrum
-from ._simulate import SimulatedProfile as SimulatedProfile
-from ._simulate import simulate as simulate
+from importlib import import_module
 
-__version__ = "0.1.0"
+from ._version import __version__ as __version__
+
+# Each public name and its module, imported on first use (PEP 562): ``import fwdfit``
+# and the command line's start (its Ctrl-C handler, ``--version``) do not import JAX.
+_PUBLIC = {
+    "enable_compilation_cache": "_cache",
+    "FwdfitError": "_errors",
+    "ModelWarning": "_errors",
+    "FitResult": "_fit",
+    "FittedProfile": "_fit",
+    "Fitter": "_fit",
+    "fit": "_fit",
+    "write_fit": "_fit_output",
+    "ImageFit": "_image_fit",
+    "fit_image": "_image_fit",
+    "write_image_fit": "_image_output",
+    "MaterialConstants": "_materials",
+    "constants_from_formula": "_materials",
+    "constants_from_ncrystal": "_materials",
+    "ForwardModel": "_model",
+    "ModelParams": "_model",
+    "paganin_filter_1d": "_paganin",
+    "paganin_filter_2d": "_paganin",
+    "paganin_tau_um2": "_paganin",
+    "paganin_tau_um2_spectrum": "_paganin",
+    "paganin_thickness_um": "_paganin",
+    "build_model": "_plan",
+    "initial_params": "_plan",
+    "profile_from_stacks": "_radiograph",
+    "ReferenceLayer": "_reference",
+    "trace_reference": "_reference",
+    "trace_reference_rows": "_reference",
+    "Posterior": "_sample",
+    "sample": "_sample",
+    "FitSpec": "_scene",
+    "Instrument": "_scene",
+    "Layer": "_scene",
+    "Profile": "_scene",
+    "Sample": "_scene",
+    "Scene": "_scene",
+    "load_scene": "_scene",
+    "pixel_grid": "_scene",
+    "dump_scene": "_scene_toml",
+    "save_scene": "_scene_toml",
+    "BandSpectrum": "_spectrum",
+    "GaussianLine": "_spectrum",
+    "TabulatedSpectrum": "_spectrum",
+    "SimulatedProfile": "_simulate",
+    "simulate": "_simulate",
+}
+__all__ = ["__version__", *_PUBLIC]
+
+
+def __getattr__(name: str):
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'fwdfit' has no attribute {name!r}")
+    value = getattr(import_module(f".{_PUBLIC[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -31,8 +31,9 @@ from ._objective import Objective
 from ._parameters import LAYER_FIELDS, FreeParameter, assembler, free_parameters
 from ._geometry import Geometry, geometry_of
 from ._predict import Predictor
+from ._progress import Progress, as_progress
 from ._quality import Quality, assess
-from ._scene import Scene, load_scene
+from ._scene import ERRORS_ESTIMATE, Scene, load_scene
 from ._search import SLD_VALUE_MAX, global_search
 from ._starts import noise_sigma
 from ._uncertainty import band, central_differences, covariance, errors_and_correlation
@@ -161,12 +162,12 @@ def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
     return dataclasses.replace(scene, sample=dataclasses.replace(sample, layers=tuple(layers)))
 
 
-def _progress_printer(enabled: bool):
+def _step_printer(say: Progress):
     def show(step, chi2):
         finite = chi2[np.isfinite(chi2)]
         if finite.size:
-            print(f"  step {step:4d}  best chi2 {finite.min():.6g}", flush=True)
-    return show if enabled else None
+            say(f"  step {step:4d}  best chi2 {finite.min():.6g}")
+    return show if say.enabled else None
 
 
 class Fitter:
@@ -190,7 +191,7 @@ class Fitter:
 
     def __init__(self, scene: Scene | str, *, vary=None, bounds=None, accuracy: float | None = None,
                  n_starts: int = 1, max_steps: int = 200, tolerance: float = 1e-2,
-                 progress: bool = False, solver=levenberg_marquardt, geometry: Geometry | None = None):
+                 progress: bool | Progress = False, solver=levenberg_marquardt, geometry: Geometry | None = None):
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         if not jax.config.jax_enable_x64:
@@ -200,7 +201,7 @@ class Fitter:
         if n_starts < 1:
             raise FwdfitError(f"n_starts must be >= 1, got {n_starts}")
         self.scene, self.n_starts, self.tolerance, self.max_steps = scene, n_starts, tolerance, max_steps
-        self.progress, self.solver = progress, solver
+        self.say, self.solver = as_progress(progress), solver
         if scene.fit.per_row:
             raise FwdfitError(f"{scene.path}: fit.per_row: only for fwdfit fit-image (an image profile)")
         self.free = free_parameters(scene, vary, bounds)
@@ -217,13 +218,12 @@ class Fitter:
             warnings.warn(caught_warning.message, caught_warning.category, stacklevel=2)
         self.model_warnings = tuple(str(w.message) for w in caught if issubclass(w.category, ModelWarning))
         self.assemble = assembler(plan_scene, self.free)
-        if progress:
-            print(f"compiling the model for this geometry ({len(scene.profiles)} profiles, "
-                  f"{len(self.model.groups)} static plans; once, then loaded from the cache)", flush=True)
-        self.predict = Predictor(self.model, self.assemble, len(self.free))
+        self.say(f"preparing the model: {len(scene.profiles)} profiles in {len(self.model.groups)} programs "
+                 "(compiled, or loaded from the cache)")
+        with self.say.ticking("compiling"):
+            self.predict = Predictor(self.model, self.assemble, len(self.free))
         self.compile_time_s = self.predict.compile_time_s
-        if progress:
-            print(f"model ready in {self.compile_time_s:.1f} s", flush=True)
+        self.say(f"model ready in {self.compile_time_s:.1f} s ({self.predict.sources_text()})")
         self._pixel_um = [scene.instruments[p.instrument].pixel_um for p in scene.profiles]
 
     def objective(self, T=None, sigma=None) -> Objective:
@@ -274,7 +274,7 @@ class Fitter:
         def solve(u, typical, tolerance, **options):
             return self.solver(lambda rows: objective.residuals(self._values(rows)), u, typical,
                                tolerance=tolerance, max_steps=self.max_steps,
-                               progress=_progress_printer(self.progress), **options)
+                               progress=_step_printer(self.say), **options)
 
         pinned = np.array([p.name in guess.pinned_names for p in free])
 
@@ -286,7 +286,7 @@ class Fitter:
         candidates, n_scanned = global_search(
             free, guess, lambda v: objective.chi2(v, _SEARCH_SMOOTHING_UM), self.geometry.at_tilts,
             _CANDIDATES, extra=user[None] if complete else None, settle=settle if pinned.any() else None)
-        self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", begin, evaluations)
+        self._say(f"global scan: {n_scanned} points; local solver from the best {len(candidates)}", evaluations)
         if self.n_starts > 1:
             candidates = np.concatenate([candidates, self.random_starts(self.n_starts - 1, candidates[0], seed)])
         u = self._units(candidates)
@@ -298,22 +298,20 @@ class Fitter:
             u = solve(u, np.where(held, 0.0, self._typical(u)), _SETTLE_TOLERANCE).u
         solution = solve(u, self._typical(u), self.tolerance)
         u = solution.u
-        self._say(f"local solver: best chi2 {np.min(solution.chi2):.6g}", begin, evaluations)
+        self._say(f"local solver: best chi2 {np.min(solution.chi2):.6g}", evaluations)
         chi2 = solution.chi2
         best = int(np.argmin(np.where(np.isfinite(chi2), chi2, np.inf)))
         if not np.isfinite(chi2[best]):
             raise FwdfitError("the fit diverged (non-finite chi-square from every start)")
         values = self._values(u[best])
         result = self._result(data, sigma, sigma_from_data, values, solution, best, int(solution.steps[best]), guess)
-        self._say("uncertainties and quality gate", begin, evaluations)
+        self._say("uncertainties and quality gate", evaluations)
         wall = time.perf_counter() - begin
         return dataclasses.replace(result, wall_time_s=wall,
                                    n_evaluations=self.predict.n_evaluations - evaluations)
 
-    def _say(self, what: str, begin: float, evaluations: int) -> None:
-        if self.progress:
-            print(f"{what}  [{time.perf_counter() - begin:.1f} s, "
-                  f"{self.predict.n_evaluations - evaluations} model evaluations]", flush=True)
+    def _say(self, what: str, evaluations: int) -> None:
+        self.say(f"{what} ({self.predict.n_evaluations - evaluations} model evaluations)")
 
     def _typical(self, u: np.ndarray) -> np.ndarray:
         """Largest solver scale (K, n), in u: one typical physical step (at least one unit),
@@ -350,7 +348,10 @@ class Fitter:
         cov = covariance(jacobian, chi2, dof, sigma_from_data)
         errors, correlation = errors_and_correlation(cov)
         att_err = band(J_att, cov)
-        notes = []
+        notes = [f"profile {p.name!r} has no T_err: its noise ({s[0]:.3g}) was estimated from the data "
+                 f'(errors = "{ERRORS_ESTIMATE}" asks for that on purpose)'
+                 for p, s in zip(scene.profiles, sigma) if sigma_from_data and p.T_err is None
+                 and p.errors != ERRORS_ESTIMATE]
         for p, column, value, error in zip(free, jacobian.T, values, errors):
             if not np.any(column) or error > 10 * max(abs(value), p.step):
                 notes.append(f"{p.name} is not constrained by the data (error {error:.3g})")

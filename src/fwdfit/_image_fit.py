@@ -22,9 +22,7 @@ T_corrected = T - (T_model - T_att), as in the profile fit. Units: µm, as the s
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
-from collections.abc import Callable
 
 import numpy as np
 
@@ -34,6 +32,7 @@ from ._least_squares import levenberg_marquardt
 from ._parameters import assembler, free_parameters
 from ._geometry import geometry_of
 from ._predict import Predictor
+from ._progress import Progress, as_progress
 from ._scene import Profile, Scene, load_scene
 from ._starts import _blur_um, noise_sigma, outer_edges
 
@@ -350,14 +349,8 @@ class _RowSolver:
         return physical(solution.u), errors, solution.chi2, solution.steps, solution.converged
 
 
-def _progress_line(enabled: bool) -> Callable[[str], None]:
-    def say(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-    return say if enabled else (lambda text: None)
-
-
 def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int = _ROUNDS,
-              progress: bool = False) -> ImageFit:
+              progress: bool | Progress = False) -> ImageFit:
     """Fit the one image profile of a scene: shared [fit] vary parameters, and per row the
     centre and the [fit] per_row parameters.
 
@@ -369,7 +362,7 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
         scene = load_scene(scene)
     if rounds < 1:
         raise FwdfitError(f"rounds must be >= 1, got {rounds}")
-    say = _progress_line(progress)
+    say = as_progress(progress)
     profile = _image_profile(scene)
     names = _names(scene, profile)
     pixel = scene.instruments[profile.instrument].pixel_um
@@ -394,7 +387,8 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
             bin_scene = dataclasses.replace(
                 scene, sample=dataclasses.replace(scene.sample, centre_um=binning.centre_um),
                 profiles=tuple(profiles), fit=dataclasses.replace(scene.fit, per_row=()))
-            fitter = Fitter(bin_scene, vary=names.shared, bounds=names.bounds_shared, accuracy=accuracy)
+            with say.ticking("compiling"):
+                fitter = Fitter(bin_scene, vary=names.shared, bounds=names.bounds_shared, accuracy=accuracy)
             compile_time += fitter.compile_time_s
             shared = fitter()
         else:
@@ -402,7 +396,8 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
         say(f"round {round_ + 1}: shared fit of {int(use.sum())} rows in {len(profiles)} averaged profiles, "
             f"chi2/dof {shared.chi2_reduced:.4g}")
         if rows is None:
-            rows = _RowSolver(scene, profile, shared, fitter, names, accuracy)
+            with say.ticking("compiling the per-row model"):
+                rows = _RowSolver(scene, profile, shared, fitter, names, accuracy)
             compile_time += rows.compile_time_s
         base = rows.base(shared)
         if round_ == 0:  # each row starts where its edges (or its neighbours') put it, moved by their common bias

@@ -23,7 +23,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from ._errors import FwdfitError
-from ._tables import temporary_path
+from ._tables import mark_output, temporary_path
 
 OUTPUT_FILES = ("T_att.tif", "T_corrected.tif", "residual.tif", "rows.csv", "result.json", "overview.png")
 _TIFF_SUFFIXES = (".tif", ".tiff")
@@ -219,6 +219,7 @@ def fit_series(scene_path: str | Path, images: Sequence[Path], out_dir: str | Pa
     say(f"{len(images)} images: {len(done)} done before (skipped), {len(todo)} to fit"
         + ("" if not todo else " serially" if workers == 1 and scheduler is None
            else f" on {scheduler}" if scheduler else f" on {workers} local Dask workers"))
+    mark_output(out_dir)  # a later run may resume in it (check_paths)
     _remove_stale_staging(out_dir, [images[i].stem for i in todo])
     tasks = [(str(scene_path), str(images[i]), str(out_dir / images[i].stem), accuracy, cache) for i in todo]
     if workers == 1 and scheduler is None:
@@ -232,7 +233,6 @@ def fit_series(scene_path: str | Path, images: Sequence[Path], out_dir: str | Pa
         note = f": {line['message']}" if line["status"] == STATUS_FAILED else ""
         say(f"images {len(done) + count}/{len(images)}, {rate:.2f} images/s, "
             f"{(len(todo) - count) / rate:.0f} s left; {line['image']}: {line['status']}{note}")
-    out_dir.mkdir(parents=True, exist_ok=True)
     write_summary(lines, out_dir / "summary.csv")
     return lines
 

@@ -162,12 +162,15 @@ def free_parameters(scene: Scene, vary=None, bounds=None) -> tuple[FreeParameter
             if key == "tilt_deg" and not given and math.isfinite(value):
                 high = min(max(high, 2.0 * abs(value)), MAX_TILT_DEG)
                 low = -high
+            if registry.BY_KEY[key].signed_by_start and not given and value < 0:
+                low, high = -high, -low  # a negative-SLD material (Ti, V, water, a hydride)
             if math.isnan(value):
                 free.append(FreeParameter(canonical, value, low, high, step, target))
                 continue
             if not low <= value <= high:
-                raise FwdfitError(f"{scene.path}: fit.bounds.{entry}: start value {value} "
-                                  f"is outside [{low}, {high}]")
+                source = f"fit.bounds.{entry}" if given else (
+                    f"fit.vary.{entry}: the default bounds of {key}; set fit.bounds.{entry} to change them")
+                raise FwdfitError(f"{scene.path}: {source}: start value {value} is outside [{low}, {high}]")
             if value in (low, high) and key != "background":
                 value = value + (0.01 * step if value == low else -0.01 * step)
             free.append(FreeParameter(canonical, value, low, high, step, target))

@@ -107,6 +107,7 @@ class Predictor:
             example = jax.device_put(example, self._rows_sharding)
         # the model of each group alone (``ForwardModel.grouped`` then has one entry)
         parts = [eqx.tree_at(lambda m: m.groups, model, (group,)) for group in model.groups]
+        self.program_sources: list[str] = []  # per program: "compiled", "loaded" (cache folder) or "reused"
         self._programs = [self._program(part, assemble, example, devices) for part in parts]
         self._order = model.scene_order
         self.n_pixel_total = sum(compiled.out_info[0].shape[1] for compiled, _ in self._programs)
@@ -132,23 +133,30 @@ class Predictor:
             mesh = self._rows_sharding.mesh
             leaves = jax.device_put(leaves, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
         key = _program_key(leaves, example, f"{treedef}|{self.rows_per_call}|{self.n_free}|{len(devices)}")
-        compiled = _COMPILED.get(key)
+        compiled, source = _COMPILED.get(key), "reused"
         if compiled is None:
             compile_here = lambda: jax.jit(run).lower(leaves, example).compile()
             if len(devices) == 1:  # a stored executable serves one device; a sharded program is compiled here
                 trees = (jax.tree_util.tree_structure(((leaves, example), {})),
                          jax.tree_util.tree_structure((example, example)))
-                compiled = _stored(key, *trees, compile_here)
+                compiled, source = _stored(key, *trees, compile_here)
             else:
-                compiled = compile_here()
+                compiled, source = compile_here(), "compiled"
             if len(_COMPILED) >= _MAX_COMPILED:
                 del _COMPILED[next(iter(_COMPILED))]
             _COMPILED[key] = compiled
+        self.program_sources.append(source)
         return compiled, leaves
+
+    def sources_text(self) -> str:
+        """How the programs were had, e.g. "3 compiled, 1 loaded from the cache"."""
+        words = {"compiled": "compiled", "loaded": "loaded from the cache", "reused": "already compiled"}
+        counts = {s: self.program_sources.count(s) for s in words if s in self.program_sources}
+        return ", ".join(f"{n} {words[s]}" for s, n in counts.items())
 
     def __call__(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictions for values (rows, n_free) in physical units: (T_model, T_att) as NumPy."""
-        values = np.asarray(values, dtype=float).reshape(-1, self.n_free)
+        values = np.atleast_2d(np.asarray(values, dtype=float))
         n_rows, chunk = values.shape[0], self.rows_per_call
         if n_rows == 0:
             empty = np.zeros((0, self.n_pixel_total))
@@ -198,16 +206,16 @@ def _host_cpu() -> str:
 
 
 def _stored(key: str, in_tree, out_tree, compile_here):
-    """The compiled program ``key`` (from ``_program_key``) from the cache folder, else
-    ``compile_here()``, stored there for the next run. A stored executable loads in ~0.1 s
+    """(program, "loaded" or "compiled"): the compiled program ``key`` (from ``_program_key``)
+    from the cache folder, else ``compile_here()``, stored there for the next run. A stored executable loads in ~0.1 s
     (JAX's persistent cache takes ~0.2 s, since it must lower the program to find it);
     without the cache folder nothing is stored."""
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
-        return compile_here()
+        return compile_here(), "compiled"
     path = Path(folder) / "fwdfit-programs" / f"{key}.xla"
     try:
-        return serialize_executable.deserialize_and_load(path.read_bytes(), in_tree, out_tree)
+        return serialize_executable.deserialize_and_load(path.read_bytes(), in_tree, out_tree), "loaded"
     except Exception:  # noqa: BLE001 - none yet, or from another jaxlib, or damaged: compile anew
         pass
     compiled = compile_here()
@@ -220,4 +228,4 @@ def _stored(key: str, in_tree, out_tree, compile_here):
         os.replace(temporary, path)
     except (OSError, ValueError):
         pass  # a read-only cache, or a program XLA cannot serialize: compiled again next time
-    return compiled
+    return compiled, "compiled"

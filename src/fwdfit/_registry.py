@@ -51,6 +51,7 @@ class Quantity:
     positive: bool = False
     material: bool = False
     uniform_from: str | None = None
+    signed_by_start: bool = False  # default bounds mirrored to (-high, -low) for a negative start value
 
 
 QUANTITIES = (
@@ -60,13 +61,14 @@ QUANTITIES = (
     Quantity("sample", "left_roughness_mrad", "mrad", 0.0, (0.0, MAX_ROUGHNESS_MRAD), 0.1),
     Quantity("sample", "drift_um_per_mm", "um/mm", 0.0, (-_INF, _INF), 0.01, model="assembler"),
     Quantity("layers", "thickness_um", "um", None, (0.0, _INF), 1.0, from_data=True),
-    Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True, material=True),
+    Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True, material=True,
+             signed_by_start=True),
     Quantity("layers", "mu_per_m", "1/m", None, (0.0, _INF), 1.0, from_data=True, material=True),
     Quantity("layers", "mu_per_m_per_A", "1/(m A)", 0.0, (0.0, _INF), 0.1, material=True),
     Quantity("layers", "density_scale", "", 1.0, (0.0, _INF), 0.01, positive=True),
     Quantity("layers", "roughness_mrad", "mrad", 0.0, (0.0, MAX_ROUGHNESS_MRAD), 0.1),
     Quantity("layers", "sld_end_e6_per_A2", "1e-6/A^2", math.nan, (0.0, _INF), 0.1,
-             uniform_from="sld_e6_per_A2"),
+             uniform_from="sld_e6_per_A2", signed_by_start=True),
     Quantity("layers", "mu_end_per_m", "1/m", math.nan, (0.0, _INF), 1.0, uniform_from="mu_per_m"),
     Quantity("profiles", "distance_mm", "mm", None, (0.0, _INF), 0.1, positive=True),
     Quantity("profiles", "shift_um", "um", 0.0, (-_INF, _INF), 1.0, model="assembler"),

@@ -63,7 +63,7 @@ def write_posterior(posterior: Posterior, out_dir: Path) -> None:
     chains, draws, _ = posterior.draws.shape
     columns = {"chain": np.repeat(np.arange(chains), draws), "draw": np.tile(np.arange(draws), chains)}
     columns.update({name: posterior.draws[:, :, j].ravel() for j, name in enumerate(posterior.names)})
-    with staged_folder(Path(out_dir)) as staging:
+    with staged_folder(Path(out_dir), add=True) as staging:
         write_columns(staging / "chains.csv", columns)
         (staging / "posterior.json").write_text(summary)
         plot_corner(staging / "corner.png", posterior)

@@ -120,6 +120,7 @@ class Profile:
     image_err: np.ndarray | None = None  # (rows, n) its 1-sigma errors, if given
     image_file: Path | None = None
     image_err_file: Path | None = None
+    errors: str = ""  # "estimate": noise estimated from T on purpose; "": T_err where given
 
 
 def pixel_count(x_min_um: float, x_max_um: float, pixel_um: float) -> int:
@@ -151,6 +152,16 @@ class Scene:
     accuracy: float = DEFAULT_ACCURACY
     path: Path | None = None
 
+    def input_files(self) -> tuple[Path, ...]:
+        """Every file the scene was read from: the scene file, profile tables and images,
+        spectrum tables (an output folder must hold none of them)."""
+        files = [self.path]
+        for p in self.profiles:
+            files += [p.file, p.image_file, p.image_err_file]
+        files += [getattr(s, "path", None) for s in self.spectra.values()]
+        files += [getattr(getattr(s, "table", None), "path", None) for s in self.spectra.values()]
+        return tuple(dict.fromkeys(Path(f) for f in files if f is not None))
+
 
 _SAMPLE_KEYS = {"layers", *registry.part("sample")}
 _LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *registry.part("layers")}
@@ -158,7 +169,12 @@ _FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_d
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
 _PROFILE_KEYS = {"name", "spectrum", "instrument", "file", "x_min_um", "x_max_um", "image", "image_err", "x0_um",
-                 *registry.part("profiles")}
+                 "errors", *registry.part("profiles")}
+ERRORS_ESTIMATE = "estimate"  # errors = "estimate": the noise from the data, a T_err column ignored
+# Columns a profile table may hold besides x_um, T, T_err, read past: those fwdfit writes
+# (simulate, fit), the shipped example's truth, and the McStas reference tables'.
+PASSIVE_COLUMNS = ("T_att", "T_att_err", "T_att_true", "T_model", "T_corrected", "T_corrected_err",
+                   "T_err_uncorr", "I_sample", "I_sample_err", "I_open", "I_open_err", "N_open_rays")
 _BAND_KEYS = ("lambda_min_A", "lambda_max_A")
 _TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
 
@@ -443,6 +459,8 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                            ("image_err", "file"), ("x0_um", "file")):
             if reader.has(key) and reader.has(needs):
                 reader.fail(reader.key(key), f"a profile takes either {key} or {needs}, not both")
+        if reader.has("errors") and not reader.has("file"):
+            reader.fail(reader.key("errors"), "only for a measured profile (file = ...)")
         for key in ("image_err", "x0_um"):
             if reader.has(key) and not reader.has("image"):
                 reader.fail(reader.key(key), "only for an image profile (image = ...)")
@@ -454,8 +472,10 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
             x_um = pixel_grid(x0_um, x0_um + image.shape[1] * pixel_um, pixel_um)
         elif reader.has("file"):
             file = path.parent / reader.string("file")
-            columns = read_columns(file, ["x_um", "T"], ["T_err"])
+            columns = read_columns(file, ["x_um", "T"], ["T_err"], passive=PASSIVE_COLUMNS)
             x_um, T, T_err = columns["x_um"], columns["T"], columns.get("T_err")
+            if reader.string("errors", "", choices=(ERRORS_ESTIMATE,)) == ERRORS_ESTIMATE:
+                T_err = None
             if T_err is not None and np.any(T_err <= 0):
                 reader.fail(reader.key("file"), "T_err must be > 0 everywhere")
             if np.any(np.diff(x_um) <= 0):
@@ -476,7 +496,7 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         profiles.append(Profile(
             name=name, spectrum=spectrum, instrument=instrument, x_um=x_um, T=T, T_err=T_err,
             **_plain(reader, "profiles"), file=file, image=image, image_err=image_err,
-            image_file=image_file, image_err_file=err_file))
+            image_file=image_file, image_err_file=err_file, errors=reader.string("errors", "")))
     return tuple(profiles)
 
 

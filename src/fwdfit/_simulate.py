@@ -6,11 +6,12 @@ import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
-import equinox as eqx
 import numpy as np
 
 from ._geometry import geometry_of
-from ._plan import initial_params
+from ._parameters import assembler
+from ._predict import Predictor
+from ._progress import Progress, as_progress
 from ._scene import Scene, load_scene
 from ._tables import check_finite, staged_folder, write_columns
 
@@ -25,18 +26,27 @@ class SimulatedProfile:
     T_att: np.ndarray
 
 
-def simulate(scene: Scene | str | Path, accuracy: float | None = None) -> list[SimulatedProfile]:
+def simulate(scene: Scene | str | Path, accuracy: float | None = None,
+             progress: bool | Progress = False) -> list[SimulatedProfile]:
     """T and T_att for every profile of a scene (a ``Scene`` or a scene file path).
 
     accuracy: target RMS error in T, in the validity domain [1e-5, 0.1]; default the
     scene's ``[model] accuracy``. FwdfitError if any value comes out NaN or infinite.
+    The model's programs come from the cache folder where ``enable_compilation_cache``
+    set one (``_predict``). progress: say what happens on stderr.
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
+    say = as_progress(progress)
     model = geometry_of(scene).build_model(scene, accuracy, (), None)
-    T, T_att = eqx.filter_jit(model)(initial_params(scene))
-    profiles = [SimulatedProfile(p.name, p.x_um, np.asarray(t), np.asarray(a))
-                for p, t, a in zip(scene.profiles, T, T_att)]
+    say(f"preparing the model: {len(scene.profiles)} profiles in {len(model.groups)} programs")
+    with say.ticking("compiling"):
+        predict = Predictor(model, assembler(scene, ()), 0)
+    say(f"model ready in {predict.compile_time_s:.1f} s ({predict.sources_text()})")
+    (T,), (T_att,) = predict(np.zeros((1, 0)))
+    ends = np.cumsum([len(p.x_um) for p in scene.profiles])[:-1]
+    profiles = [SimulatedProfile(p.name, p.x_um, t, a)
+                for p, t, a in zip(scene.profiles, np.split(T, ends), np.split(T_att, ends))]
     for p in profiles:
         check_finite({"T": p.T, "T_att": p.T_att}, f"{scene.path}: profile {p.name!r}")
     return profiles

@@ -11,19 +11,24 @@ import secrets
 import shutil
 import tempfile
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import FwdfitError
+from ._interrupt import interrupts_deferred, removed_on_interrupt
 
 
 def read_columns(
-    path: Path, required: Sequence[str], optional: Sequence[str] = ()
+    path: Path, required: Sequence[str], optional: Sequence[str] = (), passive: Sequence[str] | None = None
 ) -> dict[str, np.ndarray]:
-    """Read named float columns of a CSV file (header row); every value finite, >= 2 rows."""
+    """Read named float columns of a CSV file (header row); every value finite, >= 2 rows.
+
+    passive: columns that may be present and are not read; when given, any other column
+    is an error (a misspelt ``T_error`` is not silently ignored).
+    """
     try:
         with open(path, encoding="utf-8") as stream, warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data": refused below
@@ -36,6 +41,11 @@ def read_columns(
     missing = [name for name in required if name not in header]
     if missing:
         raise FwdfitError(f"{path}: missing column(s) {', '.join(missing)} (has {', '.join(header)})")
+    if passive is not None:
+        unknown = [name for name in header if name not in {*required, *optional, *passive}]
+        if unknown:
+            raise FwdfitError(f"{path}: unknown column {unknown[0]} (read: {', '.join([*required, *optional])}; "
+                              f"allowed besides: {', '.join(passive)})")
     if rows.shape[0] < 2:
         raise FwdfitError(f"{path}: needs at least two rows of data")
     if rows.shape[1] != len(header):
@@ -83,28 +93,68 @@ def temporary_path(path: Path) -> Iterator[Path]:
     """A fresh hidden name beside ``path`` to write to and rename; removed if still there."""
     temp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     try:
-        yield temp
+        with removed_on_interrupt(temp):
+            yield temp
     finally:
         temp.unlink(missing_ok=True)
 
 
-@contextmanager
-def staged_folder(out_dir: Path) -> Iterator[Path]:
-    """A hidden temporary folder beside ``out_dir``; its files move into ``out_dir`` at the end.
+OUTPUT_MARKER = ".fwdfit-output"  # in every folder fwdfit writes: a later run may replace that folder
 
-    On an error or Ctrl-C the temporary folder is removed and ``out_dir`` is neither
-    created nor changed; files already in ``out_dir`` with other names stay.
+
+def is_fwdfit_output(folder: Path) -> bool:
+    """True if ``folder`` holds fwdfit's marker (a folder an earlier fwdfit command wrote)."""
+    return (Path(folder) / OUTPUT_MARKER).is_file()
+
+
+def mark_output(folder: Path) -> None:
+    """Make ``folder`` (if absent) and mark it as fwdfit's output folder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / OUTPUT_MARKER).write_text("written by fwdfit: a later run may replace this folder\n",
+                                        encoding="utf-8")
+
+
+@contextmanager
+def staged_folder(out_dir: Path, add: bool = False) -> Iterator[Path]:
+    """A hidden temporary folder beside ``out_dir`` that becomes ``out_dir`` at the end.
+
+    ``out_dir`` is created, or replaces an empty folder or one an earlier fwdfit run wrote
+    (its stale files go with it); ``add``: the new files join those of a folder fwdfit
+    wrote (a posterior beside its fit). A non-empty folder that fwdfit did not write is
+    refused. On an error or Ctrl-C the temporary folder is removed and ``out_dir`` is
+    neither created nor changed.
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
     try:
-        yield staging
-        out_dir.mkdir(exist_ok=True)
-        for item in sorted(staging.iterdir()):
-            os.replace(item, out_dir / item.name)
+        with removed_on_interrupt(staging):
+            yield staging
+            mark_output(staging)
+            with interrupts_deferred():
+                _commit(staging, out_dir, add)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _commit(staging: Path, out_dir: Path, add: bool) -> None:
+    """Put the staged folder's files in place (see ``staged_folder``)."""
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not is_fwdfit_output(out_dir):
+        raise FwdfitError(f"--out {out_dir}: {_NOT_OURS}")
+    if add and out_dir.is_dir():
+        for item in sorted(staging.iterdir()):
+            os.replace(item, out_dir / item.name)
+        return
+    if not out_dir.exists():
+        os.rename(staging, out_dir)
+        return
+    old = out_dir.with_name(f".{out_dir.name}.{secrets.token_hex(4)}.old")
+    os.rename(out_dir, old)
+    os.rename(staging, out_dir)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+_NOT_OURS = "holds files that fwdfit did not write; name a new or empty folder"
 
 
 def check_paths(inputs: Sequence[str | os.PathLike] = (), out_dir: str | os.PathLike | None = None,
@@ -114,7 +164,8 @@ def check_paths(inputs: Sequence[str | os.PathLike] = (), out_dir: str | os.Path
     inputs: files that must exist. out_dir: a folder to write into (absent or a folder).
     out_file: a file to write (absent or a file). The nearest existing folder above the
     output and an existing output folder must accept new entries (checked by making and
-    removing a temporary folder, which works for every user, root included).
+    removing a temporary folder, which works for every user, root included); an existing
+    output folder must be empty or one that fwdfit wrote (``staged_folder``).
     """
     for name in inputs:
         if not Path(name).is_file():
@@ -130,9 +181,22 @@ def check_paths(inputs: Sequence[str | os.PathLike] = (), out_dir: str | os.Path
         above = next(p for p in out.absolute().parents if p.exists())
         if not above.is_dir():
             raise FwdfitError(f"--out {out}: {above} is a file, not a folder")
+        if kind == "folder" and out.is_dir() and any(out.iterdir()) and not is_fwdfit_output(out):
+            raise FwdfitError(f"--out {out}: {_NOT_OURS}")
         for folder in (above, out) if out.is_dir() else (above,):
             try:
                 os.rmdir(tempfile.mkdtemp(prefix=".fwdfit-check-", dir=folder))
             except OSError as error:
                 raise FwdfitError(f"--out {out}: cannot write in {folder} "
                                   f"({error.strerror})") from None
+
+
+def refuse_inputs_in(out: str | os.PathLike, reads: Iterable[str | os.PathLike]) -> None:
+    """Refuse an output ``out`` (a folder or a file) that is, or holds, a file the command reads."""
+    out = Path(out).resolve()
+    for name in reads:
+        path = Path(name).resolve()
+        if path == out or out in path.parents:
+            where = "is" if path == out else "holds"
+            raise FwdfitError(f"--out {name if path == out else out}: {where} an input "
+                              f"({Path(name).name}); name another folder")

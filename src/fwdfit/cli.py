@@ -1,8 +1,11 @@
-"""The ``fwdfit`` command line: a thin shell over the library (no physics here).
+"""Fit refraction at sample edges and interfaces out of neutron radiographs.
 
-Every command exits 0 on success and 1 with a one-line ``fwdfit: error: ...`` on
-bad input (options included), writing nothing; Ctrl-C prints ``fwdfit: interrupted``
-and exits 130, also writing nothing. Outputs and inputs are checked before any work.
+The ``fwdfit`` command line, a thin shell over the library (no physics here): every
+command exits 0 on success and 1 with a one-line ``fwdfit: error: ...`` on bad input
+(options included), writing nothing; Ctrl-C prints ``fwdfit: interrupted`` and exits
+130, also writing nothing. Outputs and inputs are checked before any work; an output
+folder never holds an input. Progress goes to stderr, results to stdout. Only the
+standard library is imported before the Ctrl-C handler is in place.
 """
 
 from __future__ import annotations
@@ -14,12 +17,12 @@ import warnings
 from pathlib import Path
 
 from ._errors import FwdfitError, ModelWarning
-from ._limits import domain_problem
-from ._paganin_scene import MODES as PAGANIN_MODES
-from ._profile_cli import add_profile_parser
-from ._tables import check_paths, staged_folder
+from ._interrupt import EXIT_INTERRUPTED, install_interrupt_handler
+from ._progress import Progress
+from ._version import __version__
 
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
+_CACHE = ("Compiled models are kept in FWDFIT_CACHE_DIR (default $XDG_CACHE_HOME/fwdfit, else "
+          "~/.cache/fwdfit; 'off' disables).")
 EXIT_NOT_CONVERGED = 2  # fit: results written, the solver did not converge
 EXIT_REJECTED = 3  # fit: results written, converged, but the data reject the model
 
@@ -35,6 +38,8 @@ def _in_domain(key: str):
     """An argparse ``type``: a number inside the validity domain of ``key`` (the same
     check as the scene key of that name); argparse names the option in its message."""
     def parse(text: str) -> float:
+        from ._limits import domain_problem
+
         value = float(text)  # a ValueError: argparse says "invalid <key> value: ..."
         problem = domain_problem(key, value)
         if problem:
@@ -59,22 +64,42 @@ def _quiet_xla() -> None:
         pass
 
 
+def _use_cache(args) -> None:
+    """The persistent cache of compiled programs, unless ``--no-cache``."""
+    if not args.no_cache:
+        from ._cache import enable_compilation_cache
+
+        enable_compilation_cache()
+
+
 def _enable_float64() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
 
 
-def _run_simulate(args) -> None:
-    from . import load_scene, simulate  # looked up when run: a test may replace them
-    from ._simulate import write_simulation
+def _scene_of(args):
+    """The scene of a command, its output folder checked: writable, and holding no input."""
+    from ._scene import load_scene  # looked up when run
+    from ._tables import check_paths, refuse_inputs_in
 
     check_paths([args.scene], out_dir=args.out)
-    _enable_float64()
+    args.say(f"reading {args.scene}")
     scene = load_scene(args.scene)
+    refuse_inputs_in(args.out, scene.input_files())
+    return scene
+
+
+def _run_simulate(args) -> None:
+    from . import simulate  # looked up when run: a test may replace it
+    from ._simulate import write_simulation
+
+    _enable_float64()
+    scene = _scene_of(args)
+    _use_cache(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default", ModelWarning)
-        profiles = simulate(scene, args.accuracy)
+        profiles = simulate(scene, args.accuracy, progress=args.say)
     for warning in caught:
         _print_warning(warning.message, warning.category, warning.filename, warning.lineno)
     write_simulation(profiles, Path(args.out),
@@ -83,12 +108,10 @@ def _run_simulate(args) -> None:
 
 
 def _run_paganin(args) -> None:
-    from . import load_scene
-    from ._tables import write_columns
+    from ._tables import staged_folder, write_columns
     from .paganin import paganin_layer, paganin_profiles
 
-    check_paths([args.scene], out_dir=args.out)
-    scene = load_scene(args.scene)
+    scene = _scene_of(args)
     profiles = paganin_profiles(scene, material=args.material, b_factor=args.b_factor,
                                 mode=args.mode)
     layer = paganin_layer(scene, args.material).name
@@ -105,21 +128,19 @@ def _run_paganin(args) -> None:
 
 
 def _run_fit(args) -> int:
-    from . import Fitter, enable_compilation_cache, load_scene, write_fit
+    from . import Fitter, write_fit
 
-    check_paths([args.scene], out_dir=args.out)
     _enable_float64()
-    scene = load_scene(args.scene)
+    scene = _scene_of(args)
     if args.starts < 1:
         raise FwdfitError(f"--starts must be >= 1, got {args.starts}")
     if args.sample is not None:
         _check_sampling(args)
-    if not args.no_cache:
-        enable_compilation_cache()
+    _use_cache(args)
     with warnings.catch_warnings():
         _notes_with_the_table()
         fitter = Fitter(scene, accuracy=args.accuracy, n_starts=args.starts, max_steps=args.max_steps,
-                        progress=not args.quiet)
+                        progress=args.say)
         result = fitter(seed=args.seed)
     posterior = None if args.sample is None else _sample_posterior(args, fitter, result)
     write_fit(result, Path(args.out))
@@ -142,19 +163,15 @@ def _run_fit(args) -> int:
 
 
 def _run_fit_image(args) -> int:
-    from ._cache import enable_compilation_cache
     from ._image_fit import FLAG_POOR_FIT, fit_image
     from ._image_output import write_image_fit
-    from ._scene import load_scene
 
-    check_paths([args.scene], out_dir=args.out)
     _enable_float64()
-    scene = load_scene(args.scene)
-    if not args.no_cache:
-        enable_compilation_cache()
+    scene = _scene_of(args)
+    _use_cache(args)
     with warnings.catch_warnings():
         _notes_with_the_table()
-        result = fit_image(scene, accuracy=args.accuracy, progress=not args.quiet)
+        result = fit_image(scene, accuracy=args.accuracy, progress=args.say)
     write_image_fit(result, Path(args.out))
     shared = result.shared
     print(shared.table())
@@ -179,22 +196,22 @@ def _run_fit_image(args) -> int:
 
 
 def _run_fit_images(args) -> int:
-    from ._image_fit import _image_profile, _names, _progress_line
+    from ._image_fit import _image_profile, _names
     from ._image_series import STATUS_OK, check_images, find_images, fit_series
-    from ._scene import load_scene
+    from ._tables import refuse_inputs_in
 
-    check_paths([args.scene], out_dir=args.out)
+    scene = _scene_of(args)
     if args.workers is not None and args.scheduler is not None:
         raise FwdfitError("--workers is for a local cluster; with --scheduler the cluster's workers fit")
     workers = args.workers if args.workers is not None else (1 if args.scheduler else os.cpu_count() or 1)
     if workers < 1:
         raise FwdfitError(f"--workers must be >= 1, got {workers}")
-    scene = load_scene(args.scene)
     profile = _image_profile(scene)
     _names(scene, profile)  # [fit] fits an image: refused here, not once per image
     images = find_images(args.images)
+    refuse_inputs_in(args.out, images)
     check_images(images, profile.image.shape)
-    say = _progress_line(not args.quiet)
+    say = args.say
     if profile.image_err is not None:
         say("note: image_err of the template is not used; each image's noise is estimated from the image")
     lines = fit_series(args.scene, images, args.out, scheduler=args.scheduler, workers=workers,
@@ -223,17 +240,25 @@ def _check_sampling(args) -> None:
 def _sample_posterior(args, fitter, result):
     from ._sample import sample
 
-    if not args.quiet:
-        print(f"sampling: {args.chains} chains, {args.sample} draws each after warm-up", flush=True)
+    args.say(f"sampling: {args.chains} chains, {args.sample} draws each after warm-up")
     return sample(fitter.scene, args.sample, chains=args.chains, warmup=args.warmup, seed=args.seed,
                   fitter=fitter, result=result)
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0])
+    from ._paganin_scene import MODES as PAGANIN_MODES
+    from ._profile_cli import add_profile_parser
+
+    parser = _Parser(prog="fwdfit", description=__doc__.splitlines()[0],
+                     epilog="Exit status: 0 success, 1 bad input (nothing written), 2 a fit did not "
+                            "converge, 3 the data reject a fit, 130 interrupted. 'fwdfit COMMAND --help' "
+                            "for a command's options.")
+    parser.add_argument("--version", action="version", version=f"fwdfit {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
-    simulate = commands.add_parser("simulate", help="predict T and T_att for every profile of a scene")
+    simulate = commands.add_parser("simulate", help="predict T and T_att for every profile of a scene",
+                                   description=f"Writes DIR/<profile>.csv with columns x_um,T,T_att. {_CACHE}")
     _add_scene_options(simulate, "scene file (TOML)", "output folder for <profile>.csv")
+    _add_run_options(simulate)
     simulate.set_defaults(handler=_run_simulate)
     paganin = commands.add_parser(
         "paganin", help="apply the single-material Paganin-type filter to every measured profile",
@@ -242,6 +267,7 @@ def _parser() -> argparse.ArgumentParser:
                     "DIR/<profile>.csv with columns x_um,T,T_filtered.")
     _add_scene_options(paganin, "scene file (TOML) whose profiles are measured (file =)",
                        "output folder for <profile>.csv", accuracy=False)
+    paganin.add_argument("--quiet", action="store_true", help="no progress output")
     paganin.add_argument("--b-factor", type=_in_domain("b_factor"), default=1.0, metavar="F",
                          help="multiplies the layer's SLD in tau (default 1; the paper needed 40)")
     paganin.add_argument("--material", metavar="LAYER", default=None,
@@ -255,8 +281,7 @@ def _parser() -> argparse.ArgumentParser:
                        help="fit the [fit] parameters to every measured profile at once",
                        description="Exit status 0: a good fit; 1: bad input; 2: results written but the "
                                    "solver did not converge; 3: results written, but the data reject the "
-                                   "fit (one line says where). Compiled models are kept in "
-                                   "FWDFIT_CACHE_DIR (default ~/.cache/fwdfit; 'off' disables).")
+                                   f"fit (one line says where); 130: interrupted. {_CACHE}")
     fit.add_argument("--starts", type=int, default=1,
                      help="N > 1 adds N - 1 random starts inside the bounds to the global scan's best "
                           "points (default 1: the scan alone)")
@@ -308,11 +333,16 @@ def _fit_command(commands, name: str, scene_help: str, handler, **texts) -> argp
     """A fit command: the scene, --out and the options every fit command takes."""
     command = commands.add_parser(name, **texts)
     _add_scene_options(command, scene_help)
-    command.add_argument("--quiet", action="store_true", help="no progress output")
-    command.add_argument("--no-cache", action="store_true",
-                         help="compile without the persistent compilation cache")
+    _add_run_options(command)
     command.set_defaults(handler=handler)
     return command
+
+
+def _add_run_options(command: argparse.ArgumentParser) -> None:
+    """--quiet and --no-cache, for the commands that compile the model."""
+    command.add_argument("--quiet", action="store_true", help="no progress output (stderr)")
+    command.add_argument("--no-cache", action="store_true",
+                         help="compile without the cache folder of compiled programs")
 
 
 def _notes_with_the_table() -> None:
@@ -329,8 +359,11 @@ def _print_warning(message, category, filename, lineno, file=None, line=None) ->
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status: 0, 1 bad input, 130 interrupted (fit: more)."""
+    install_interrupt_handler()
+
     try:
         args = _parser().parse_args(argv)
+        args.say = Progress(not getattr(args, "quiet", False))
         _quiet_xla()
         with warnings.catch_warnings():  # restores the printer
             warnings.showwarning = _print_warning
@@ -339,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"fwdfit: error: {message}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # raised by a library caller's code, not by the handler
         print("fwdfit: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     return status or 0
