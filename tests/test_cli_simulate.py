@@ -32,10 +32,10 @@ def test_simulate_writes_one_csv_per_profile(line_scene, tmp_path, capsys):
     profile's pixel centres, and T, T_att equal to the library's ``simulate`` (to the
     9 significant digits written)."""
     out = tmp_path / "out"
-    assert main(["simulate", str(line_scene), "--out", str(out)]) == 0
+    assert main(["simulate", str(line_scene), "--out", str(out), "--quiet"]) == 0
     assert capsys.readouterr().err == ""
     expected = fwdfit.simulate(line_scene)
-    assert sorted(p.name for p in out.iterdir()) == sorted(f"{p.name}.csv" for p in expected)
+    assert sorted(p.name for p in out.iterdir()) == sorted([".fwdfit-output", *(f"{p.name}.csv" for p in expected)])
     for p in expected:
         path = out / f"{p.name}.csv"
         assert path.read_text().splitlines()[0] == "x_um,T,T_att"

@@ -91,6 +91,7 @@ def test_series_resumes_without_refitting_finished_images(series, tmp_path, caps
     partial = out / "proj_001"
     partial.mkdir()
     (partial / "rows.csv").write_text("partial\n")
+    (partial / ".fwdfit-output").write_text("")  # written by fwdfit, so a new run may replace it
     stale = out / ".proj_001.k1ll3d.tmp"
     stale.mkdir()
     (stale / "result.json").write_text("{}")

@@ -83,7 +83,7 @@ def test_cli_writes_filtered_profiles_with_tau_by_hand(measured_dir, tmp_path, c
     out = tmp_path / "out"
     assert main(["paganin", str(measured_dir / "scene.toml"), "--out", str(out),
                  "--b-factor", "3"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == [f"{name}.csv" for name in DISTANCES_MM]
+    assert sorted(p.name for p in out.iterdir()) == [".fwdfit-output", *(f"{name}.csv" for name in DISTANCES_MM)]
     printed = capsys.readouterr().out
     assert "layer Al (the thickest layer" in printed
     lam = _mean_wavelength_A()

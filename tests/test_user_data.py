@@ -183,7 +183,7 @@ def test_progress_on_stderr_results_on_stdout(tmp_path):
     loud = run()
     assert loud.returncode == 0 and loud.stdout == f"wrote 4 profile(s) to {tmp_path / 'out'}\n"
     lines = loud.stderr.splitlines()
-    assert lines[0].startswith("[") and "reading" in lines[0]
+    assert lines[0].startswith("[") and "preparing" in lines[0]
     assert any("model ready in" in line and "compiled" in line for line in lines)
     again = run()  # the programs now come from the cache folder
     assert any("loaded from the cache" in line for line in again.stderr.splitlines())
@@ -223,3 +223,15 @@ def test_negative_sld_fits_with_default_bounds(tmp_path):
     assert abs(fitted.sample.layers[0].sld_e6_per_A2 / TI_SLD - 1) < 0.05
     assert abs(fitted.sample.centre_um - 3.0) < 1.0
     assert read_table(tmp_path / "out" / "ti.csv")["x_um"].shape == x.shape
+
+
+@pytest.mark.parametrize("command", ["simulate", "paganin", "fit", "fit-image", "fit-images", "profile"])
+def test_help_texts_read_as_written(command, capsys):
+    """Every command's --help: no doubled percent sign (fit-image said "5 %%" before this
+    test), the exit statuses and the cache folder where the command compiles."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = capsys.readouterr().out
+    assert "%%" not in text
+    if command in ("simulate", "fit"):
+        assert "FWDFIT_CACHE_DIR" in text and "~/.cache/fwdfit" in text

@@ -19,7 +19,6 @@ import sys
 import types
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 import tifffile
@@ -213,15 +212,16 @@ def test_folder_as_scene_is_one_line(tmp_path, capsys):
 # ----------------------------------------------------------------- finite outputs
 
 
-def _nan_model(geometry, scene, accuracy, free, tilt_range_deg):
-    return lambda params: ([jnp.full(40, jnp.nan)], [jnp.ones(40)])
+def _nan_predictions(predictor, values):
+    shape = (len(values), predictor.n_pixel_total)
+    return np.full(shape, np.nan), np.ones(shape)
 
 
 def test_simulate_refuses_non_finite_results(scene, tmp_path, capsys, monkeypatch):
     """A model that returns NaN (a bug) ends in one line and no files, not NaN CSVs."""
-    monkeypatch.setattr(fwdfit.inference.LayeredBlock, "build_model", _nan_model)
+    monkeypatch.setattr(fwdfit.inference.Predictor, "__call__", _nan_predictions)
     out = tmp_path / "out"
-    assert main(["simulate", str(scene), "--out", str(out)]) == 1
+    assert main(["simulate", str(scene), "--out", str(out), "--quiet"]) == 1
     line = one_error_line(capsys)
     assert "profile 'near': T is NaN or infinite at 40 of 40 points" in line, line
     assert not out.exists() and leftovers(tmp_path) == []
@@ -350,7 +350,7 @@ def test_missing_scene_is_refused_first(tmp_path, capsys, monkeypatch):
 # ------------------------------------------------------- Ctrl-C and file permissions
 
 
-def _fake_simulate(scene, accuracy=None):
+def _fake_simulate(scene, accuracy=None, progress=False):
     x = np.arange(5.0)
     return [fwdfit.SimulatedProfile(name, x, np.ones(5), np.ones(5)) for name in ("a", "b")]
 
@@ -525,7 +525,7 @@ def test_cli_keeps_xla_log_off_the_terminal(scene, tmp_path):
     stay off the terminal. One process (about 7 s)."""
     env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="0")
     run = subprocess.run([sys.executable, "-m", "fwdfit.cli", "simulate", str(scene), "--out",
-                          str(tmp_path / "out")], env=env, capture_output=True, text=True,
+                          str(tmp_path / "out"), "--quiet"], env=env, capture_output=True, text=True,
                          timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stderr == ""

@@ -39,9 +39,10 @@ def simulate(scene: Scene | str | Path, accuracy: float | None = None,
         scene = load_scene(scene)
     say = as_progress(progress)
     model = geometry_of(scene).build_model(scene, accuracy, (), None)
-    say(f"preparing the model: {len(scene.profiles)} profiles in {len(model.groups)} programs")
+    assemble = assembler(scene, ())
+    say(f"model planned; preparing it: {len(scene.profiles)} profiles in {len(model.groups)} programs")
     with say.ticking("compiling"):
-        predict = Predictor(model, assembler(scene, ()), 0)
+        predict = Predictor(model, assemble, 0)
     say(f"model ready in {predict.compile_time_s:.1f} s ({predict.sources_text()})")
     (T,), (T_att,) = predict(np.zeros((1, 0)))
     ends = np.cumsum([len(p.x_um) for p in scene.profiles])[:-1]

@@ -84,7 +84,6 @@ def _scene_of(args):
     from ._tables import check_paths, refuse_inputs_in
 
     check_paths([args.scene], out_dir=args.out)
-    args.say(f"reading {args.scene}")
     scene = load_scene(args.scene)
     refuse_inputs_in(args.out, scene.input_files())
     return scene
@@ -298,7 +297,7 @@ def _parser() -> argparse.ArgumentParser:
                  help="fit a whole normalised image row by row (shared material, a centre per row)",
                  description="The scene's one profile names image = T.tif. Writes T_att.tif, T_corrected.tif, "
                              "residual.tif, rows.csv, result.json and overview.png. Exit status as fwdfit fit "
-                             "(2: the shared fit did not converge; 3: more than 5 %% of the fitted rows fit "
+                             "(2: the shared fit did not converge; 3: more than 5 % of the fitted rows fit "
                              "poorly); flagged rows are named in rows.csv.")
     series = _fit_command(
         commands, "fit-images", "scene file (TOML) whose one profile is an image: the template", _run_fit_images,
