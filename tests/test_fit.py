@@ -388,7 +388,7 @@ def test_fit_cli_writes_results(small_case, tmp_path, capsys):
     assert main(["fit", str(folder / "scene.toml"), "--out", str(out), "--quiet"]) == 0
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err
-    assert sorted(p.name for p in out.iterdir()) == ["fitted_scene.toml", "line.csv", "line.png",
+    assert sorted(p.name for p in out.iterdir()) == [".fwdfit-output", "fitted_scene.toml", "line.csv", "line.png",
                                                      "result.json"]
 
     result = json.loads((out / "result.json").read_text())

@@ -294,7 +294,7 @@ def test_simulate_command_on_a_fresnel_scene(tmp_path, capsys):
     differs from the same scene without Fresnel by the signal checked above."""
     out = tmp_path / "out"
     scene_path = FRESNEL / "al_boa_tilt0.24" / "scene.toml"
-    assert main(["simulate", str(scene_path), "--out", str(out)]) == 0
+    assert main(["simulate", str(scene_path), "--out", str(out), "--quiet"]) == 0
     assert capsys.readouterr().err == ""
     ref = _reference("al_boa_tilt0.24", "d01.1mm")
     table = np.loadtxt(out / "d01.1mm.csv", delimiter=",", skiprows=1)

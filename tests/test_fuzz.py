@@ -267,7 +267,7 @@ def check_outcome(case: tuple[dict, dict[str, str]]) -> None:
         with (contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()),
               warnings.catch_warnings(record=True) as caught):
             warnings.simplefilter("always")
-            status = main(["simulate", str(scene), "--out", str(out)])
+            status = main(["simulate", str(scene), "--out", str(out), "--quiet"])
         # A warning would be printed on the terminal: it counts as a line.
         lines = stderr.getvalue().splitlines() + [f"warning: {w.message}" for w in caught]
         if status == 0:  # only the note of a thin layer that the model leaves uncoupled
@@ -275,7 +275,7 @@ def check_outcome(case: tuple[dict, dict[str, str]]) -> None:
                        for line in lines), lines
             names = [profile["name"] for profile in document["profiles"]]
             notes = ["warnings.txt"] if lines else []  # the printed notes, written beside the profiles
-            assert sorted(os.listdir(out)) == sorted([f"{name}.csv" for name in names] + notes)
+            assert sorted(os.listdir(out)) == sorted([f"{name}.csv" for name in names] + notes + [".fwdfit-output"])
             for name in names:
                 path = out / f"{name}.csv"
                 assert path.read_text().splitlines()[0] == "x_um,T,T_att"

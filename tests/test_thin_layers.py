@@ -80,7 +80,7 @@ def test_a_thin_layer_left_independent_is_reported():
 
 def test_the_command_line_prints_the_model_warning_as_one_line(tmp_path, capsys):
     path = fwdfit.save_scene(skin_scene(2.0, roughness_mrad=1.0), tmp_path / "scene.toml")
-    assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if line]
     assert len(lines) == 1 and lines[0].startswith("warning: layer 'skin'"), lines
     assert (tmp_path / "out" / "warnings.txt").read_text() == lines[0].removeprefix("warning: ") + "\n"

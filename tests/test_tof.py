@@ -149,7 +149,7 @@ def test_fits_folders_give_the_true_profiles_and_wavelengths(fits_dirs, tmp_path
     assert "wrote 12 wavelength bins" in capsys.readouterr().out
     check_against_truth(out, offset_us=-150.0)
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [f"bin{i:03d}.csv" for i in range(N_BINS)] + ["wavelengths.csv", "scene.toml"])
+        [f"bin{i:03d}.csv" for i in range(N_BINS)] + ["wavelengths.csv", "scene.toml", ".fwdfit-output"])
 
 
 @pytest.mark.parametrize("tof_last", [False, True])
@@ -385,7 +385,7 @@ def test_ctrl_c_and_a_non_empty_out_folder_leave_nothing(fits_dirs, tmp_path, ca
     taken.mkdir()
     (taken / "mine.txt").write_text("keep")
     assert main(args(taken)) == 1
-    assert "folder exists and is not empty" in one_error_line(capsys)
+    assert "holds files that fwdfit did not write" in one_error_line(capsys)
     assert [p.name for p in taken.iterdir()] == ["mine.txt"]
     calls = []
 
