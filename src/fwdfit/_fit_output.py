@@ -11,7 +11,9 @@ import numpy as np
 from . import _registry as registry
 from ._errors import FwdfitError
 from ._fit import FitResult
+from ._radiograph import draw_error_band
 from ._scene_toml import dump_scene
+from ._spectrum import BandSpectrum, GaussianLine
 from ._tables import staged_folder, write_columns
 from ._tof_output import write_tof
 
@@ -64,52 +66,90 @@ def quality_dict(quality) -> dict:
             "failing": [region(r) for r in quality.failing]}
 
 
+def spectrum_label(spectrum) -> str:
+    """A spectrum's wavelength or band as a title says it, in Å."""
+    if isinstance(spectrum, GaussianLine):
+        return f"λ {spectrum.wavelength_A:.3g} Å (FWHM {100 * spectrum.fwhm_rel:.3g} %)"
+    if isinstance(spectrum, BandSpectrum):
+        return f"λ {spectrum.lambda_min_A:.4g}-{spectrum.lambda_max_A:.4g} Å"
+    low, high = spectrum.support_A
+    return f"white beam λ {low:.3g}-{high:.3g} Å (mean {spectrum.mean_wavelength_A:.3g} Å)"
+
+
+def verdict(result: FitResult) -> str:
+    """"accepted", or "rejected" and why: the solver did not converge, or the data reject the fit."""
+    if result.accepted:
+        return "accepted"
+    return "rejected (not converged)" if not result.converged else "rejected by the data"
+
+
+def profile_title(result: FitResult, index: int) -> str:
+    """Two lines: the profile's name, distance and wavelength or band; the fit's chi2/dof,
+    the profile's own chi2 per pixel and the verdict."""
+    profile = result.scene.profiles[index]
+    spectrum = spectrum_label(result.scene.spectra[profile.spectrum])
+    line = f"{profile.name}: distance {profile.distance_mm:g} mm, {spectrum}"
+    own = {r.profile: r.chi2_reduced for r in result.quality.profiles}.get(profile.name)
+    here = "" if own is None else f", this profile χ²/pixel {own:.3f}"
+    return f"{line}\nfit χ²/dof {result.chi2_reduced:.3f} (dof {result.dof}){here}: {verdict(result)}"
+
+
 class ProfilePlot:
-    """Data with fit and residuals (top), attenuation-only fit against corrected data (bottom).
+    """Data with fit and residuals (top), attenuation-only fit against corrected data (bottom),
+    legends right of the axes, the title from :func:`profile_title`.
 
     One ``Figure`` of its own (pyplot's state and backend are left alone), built once and
     drawn again for each profile: its axes and ticks cost more than the drawing (0.35 s a
     plot when each profile builds its own, 0.15 s when they share one).
     """
 
-    def __init__(self):
+    def __init__(self, result: FitResult):
         from matplotlib.figure import Figure
 
-        self.figure = fig = Figure(figsize=(7, 8))
+        self.result = result
+        self.figure = fig = Figure(figsize=(10, 8), dpi=100)
         self.axes = top, middle, bottom = fig.subplots(3, 1, sharex=True,
                                                        gridspec_kw={"height_ratios": [3, 1, 3]})
-        fig.subplots_adjust(left=0.14, right=0.97, top=0.95, bottom=0.07, hspace=0.08)  # tight_layout: 3x slower
+        fig.subplots_adjust(left=0.1, right=0.7, top=0.92, bottom=0.07, hspace=0.08)  # tight_layout: 3x slower
         (self.measured,) = top.plot([], [], ".", ms=2, color="0.4", label="measured T")
         (self.model,) = top.plot([], [], "-", lw=1, color="C3", label="fit T_model")
-        top.set_ylabel("transmission T")
-        top.legend(loc="lower center", fontsize=8)
+        top.set_ylabel("transmission T, T_model")
         (self.residual,) = middle.plot([], [], ".", ms=2, color="C0")
         middle.axhline(0, color="k", lw=0.5)
-        middle.set_ylabel("residual / σ")
-        (self.corrected,) = bottom.plot([], [], ".", ms=2, color="0.4", label="T_corrected (refraction removed)")
-        (self.attenuation,) = bottom.plot([], [], "-", lw=1, color="C2", label="T_att (fit, ±1σ)")
-        bottom.set_ylabel("transmission T")
+        middle.set_ylabel("(T - T_model) / σ")
+        (self.corrected,) = bottom.plot([], [], ".", ms=2, color="0.4",
+                                        label="T_corrected = T - (T_model - T_att)\n(data, refraction removed)")
+        (self.attenuation,) = bottom.plot([], [], "-", lw=1, color="C2")
+        bottom.set_ylabel("T_corrected, T_att")
         bottom.set_xlabel("x (µm)")
-        bottom.legend(loc="lower center", fontsize=8)
-        self.band = None
 
-    def save(self, path: Path, profile) -> None:
-        """Draw ``profile`` (a ``FittedProfile``) and write it to ``path`` (PNG)."""
+    def draw(self, index: int):
+        """Draw the result's profile ``index`` and return the ``Figure``."""
+        profile = self.result.profiles[index]
+        top, middle, bottom = self.axes
+        for band in bottom.collections[:]:
+            band.remove()
         x = profile.x_um
         self.measured.set_data(x, profile.T)
         self.model.set_data(x, profile.T_model)
         self.residual.set_data(x, (profile.T - profile.T_model) / profile.sigma)
         self.corrected.set_data(x, profile.T_corrected)
         self.attenuation.set_data(x, profile.T_att)
-        if self.band is not None:
-            self.band.remove()
-        self.band = self.axes[2].fill_between(x, profile.T_att - profile.T_att_err,
-                                              profile.T_att + profile.T_att_err, color="C2", alpha=0.3, lw=0)
         for axes in self.axes:
             axes.relim()
             axes.autoscale_view()
-        self.axes[0].set_title(profile.name)
-        self.figure.savefig(path, dpi=100, pil_kwargs={"compress_level": 1})  # zlib 6: +50 ms a plot
+        draw_error_band(bottom, self.attenuation, profile.T_att_err, "T_att (attenuation-only fit)")
+        for axes in (top, bottom):
+            axes.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
+        top.set_title(profile_title(self.result, index), fontsize=9, loc="left",
+                      color="black" if self.result.accepted else "tab:red")
+        return self.figure
+
+    def save(self, path: Path, index: int):
+        """Draw the result's profile ``index``, write it to ``path`` (PNG), return the ``Figure``."""
+        figure = self.draw(index)
+        figure.savefig(path, pil_kwargs={"compress_level": 1})  # zlib 6: +50 ms a plot
+        return figure
 
 
 def write_fit(result: FitResult, out_dir: Path) -> None:
@@ -130,12 +170,12 @@ def write_fit(result: FitResult, out_dir: Path) -> None:
         (staging / "result.json").write_text(summary)
         plotted = set(np.linspace(0, len(result.profiles) - 1, MAX_PROFILE_PLOTS).round().astype(int).tolist()
                       if len(result.profiles) > MAX_PROFILE_PLOTS else range(len(result.profiles)))
-        plot = ProfilePlot() if plotted else None
+        plot = ProfilePlot(result) if plotted else None
         for i, p in enumerate(result.profiles):
             write_columns(staging / f"{p.name}.csv", {
                 "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
                 "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
             if i in plotted:
-                plot.save(staging / f"{p.name}.png", p)
+                plot.save(staging / f"{p.name}.png", i)
         write_tof(result, staging)
         (staging / "fitted_scene.toml").write_text(dump_scene(result.scene, out_dir, comment="written by fwdfit"))

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import FwdfitError
-from ._fit_output import result_dict
+from ._fit_output import result_dict, spectrum_label
 from ._image_fit import (FLAG_MASKED, FLAG_NO_EDGE, FLAG_NOT_CONVERGED, FLAG_POOR_FIT, ImageFit)
 from ._tables import staged_folder, write_columns
 
@@ -48,13 +48,23 @@ def _column(name: str) -> str:
     return ".".join(parts[1:]) if parts[0] == "layers" else parts[-1]
 
 
-def plot_overview(path: Path, result: ImageFit) -> None:
-    """The data, T_corrected and the normalised residuals as images, and the centre per row.
+def overview_title(result: ImageFit) -> str:
+    """Two lines: the image's distance and wavelength or band; its rows, chi2/dof and the verdict."""
+    scene = result.shared.scene
+    profile = scene.profiles[0]
+    verdict = "accepted" if result.accepted else "rejected"
+    return (f"distance {profile.distance_mm:g} mm, {spectrum_label(scene.spectra[profile.spectrum])}\n"
+            f"{result.summary()}: {verdict}")
+
+
+def plot_overview(path: Path, result: ImageFit):
+    """The data, T_corrected and the normalised residuals as images, and the centre per row;
+    written to ``path`` (PNG), the ``Figure`` returned.
 
     Drawn on a ``Figure`` of its own: pyplot's state and backend are left alone."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(11, 7))
+    fig = Figure(figsize=(12, 7))
     axes = fig.subplots(2, 2)
     extent = (result.x_um[0], result.x_um[-1], len(result.flags) - 0.5, -0.5)
     low, high = np.nanpercentile(result.T, [1, 99])
@@ -78,10 +88,13 @@ def plot_overview(path: Path, result: ImageFit) -> None:
                                     np.nanmedian(result.centre_um))[flagged], "x", color="C3", label="flagged")
     ax.set_xlabel("row")
     ax.set_ylabel("centre (µm)")
-    ax.legend(fontsize=8)
-    ax.set_title(result.summary(), fontsize=7)
-    fig.subplots_adjust(left=0.07, right=0.97, top=0.95, bottom=0.08, hspace=0.35, wspace=0.2)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
+    ax.set_title("centre per row, ±1σ", fontsize=9)
+    fig.suptitle(overview_title(result), fontsize=9, x=0.07, ha="left",
+                 color="black" if result.accepted else "tab:red")
+    fig.subplots_adjust(left=0.07, right=0.85, top=0.9, bottom=0.08, hspace=0.35, wspace=0.2)
     fig.savefig(path, dpi=90)
+    return fig
 
 
 def write_image_fit(result: ImageFit, out_dir: Path) -> None:

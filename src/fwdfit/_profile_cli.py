@@ -4,7 +4,8 @@ or (``--tof``) time-of-flight stacks to one profile per wavelength bin.
 A thin shell over :func:`fwdfit._radiograph.profile_from_stacks` and
 :func:`fwdfit._tof.tof_profiles`: it parses options, computes everything, then writes
 ``FILE.csv`` and ``FILE.png`` together (temporary files renamed into place), or the
-folder of bins (staged, then moved into place), so a failure leaves no output behind.
+folder of bins (staged, then moved into place), so a failure leaves no output behind;
+then one line on stdout says what it wrote.
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ def add_profile_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
         "profile", help="turn TIFF stacks into a profile x_um,T,T_err",
         description="Normalise sample frames by open-beam and dark frames "
                     "(T = (I - D) / (O - D)), average the region of interest along its "
-                    "rows and write FILE.csv (x_um,T,T_err) and FILE.png (the radiograph). "
+                    "rows and write FILE.csv (x_um,T,T_err) and FILE.png (the radiograph "
+                    "and the profile with its errors). "
                     "With --tof: time-of-flight stacks (a folder of per-bin FITS files with "
                     "its *_Spectra.txt, or an HDF5/NeXus histogram), one profile per "
                     "wavelength bin written to the folder --out with wavelengths.csv and a "
@@ -99,7 +101,7 @@ def _write_outputs(profile: RadiographProfile, csv_path: Path, png_path: Path) -
     csv_path.parent.mkdir(parents=True, exist_ok=True)
     with temporary_path(csv_path) as csv_temp, temporary_path(png_path) as png_temp:
         write_profile_csv(csv_temp, profile.x_um, profile.T, profile.T_err)
-        plot_radiograph_png(png_temp, profile.image, profile.roi)
+        plot_radiograph_png(png_temp, profile)
         os.replace(csv_temp, csv_path)
         os.replace(png_temp, png_path)
 
@@ -129,6 +131,7 @@ def run_profile(args: argparse.Namespace) -> None:
                                   combine=args.combine or "median", rotate=args.rotate,
                                   dose_roi=dose_roi)
     _write_outputs(profile, args.out, args.out.with_suffix(".png"))
+    print(f"wrote {args.out} ({len(profile.x_um)} pixels), {args.out.with_suffix('.png')}")
 
 
 def run_tof_profile(args: argparse.Namespace, roi, dose_roi) -> None:
