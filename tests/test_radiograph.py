@@ -15,7 +15,7 @@ import pytest
 import tifffile
 
 from fwdfit import FwdfitError
-from fwdfit.cli import add_profile_parser
+from fwdfit.cli import build_parser
 from fwdfit.images import (
     Roi,
     clipped_mean_frames,
@@ -365,9 +365,7 @@ def test_bad_pixel_size_is_rejected(stacks, pixel_um):
 
 
 def parse(argv):
-    parser = argparse.ArgumentParser(prog="fwdfit")
-    add_profile_parser(parser.add_subparsers(dest="command", required=True))
-    return parser.parse_args(argv)
+    return build_parser().parse_args(argv)
 
 
 def cli_args(stacks, out, *extra):

@@ -244,7 +244,8 @@ def _sample_posterior(args, fitter, result):
                   fitter=fitter, result=result)
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's argument parser (every command and option)."""
     from ._paganin_scene import MODES as PAGANIN_MODES
     from ._profile_cli import add_profile_parser
 
@@ -361,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     install_interrupt_handler()
 
     try:
-        args = _parser().parse_args(argv)
+        args = build_parser().parse_args(argv)
         args.say = Progress(not getattr(args, "quiet", False))
         _quiet_xla()
         with warnings.catch_warnings():  # restores the printer
