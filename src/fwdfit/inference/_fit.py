@@ -34,8 +34,8 @@ from ._predict import Predictor
 from .._progress import Progress, as_progress
 from ._quality import Quality, assess
 from ..scene._scene import ERRORS_ESTIMATE, Scene, load_scene
-from ._search import SLD_VALUE_MAX, global_search
-from ._starts import noise_sigma
+from ._search import global_search
+from ._starts import SLD_VALUE_MAX, noise_sigma
 from ._uncertainty import band, central_differences, covariance, errors_and_correlation
 
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan

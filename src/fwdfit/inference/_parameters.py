@@ -26,8 +26,8 @@ import numpy as np
 
 from ..scene import _registry as registry
 from .._errors import FwdfitError
-from ..model.block._model import ModelParams
-from ..model.block._plan import MAX_TILT_DEG, initial_params, layer_value, to_device
+from ..model.block import ModelParams, initial_params, layer_value, to_device
+from ..scene._limits import MAX_TILT_DEG
 from ..scene._scene import Scene
 
 LAYER_FIELDS = tuple(registry.part("layers"))  # per-layer model parameters

@@ -189,8 +189,9 @@ def _source_digest() -> str:
     """SHA-256 of fwdfit's Python sources (~2 ms): a checkout between releases, with the
     version unchanged, must not load programs that other code compiled."""
     digest = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    package = Path(__file__).parents[1]  # fwdfit/: every module of every folder
+    for path in sorted(package.rglob("*.py"), key=lambda path: path.relative_to(package).as_posix()):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
 
 

@@ -15,23 +15,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._parameters import FreeParameter
-
-if TYPE_CHECKING:  # _starts sizes its refraction reach with SLD_VALUE_MAX
-    from ._starts import Estimate
+from ._starts import _SLD_VALUES, Estimate  # the SLDs tried where the scene gives none ...
 
 _TILT_SPACING_DEG = 0.1  # coarse tilt grid up to 1 degree ...
 _WIDE_TILT_SPACING_DEG = 0.25  # ... and beyond
 _TILT_REFINE_DEG = (-0.05, -0.025, 0.025, 0.05)  # around each of the best coarse tilts
 _TILT_MINIMA = 3  # coarse minima refined
-_SLD_VALUES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0)  # SLDs tried where the scene gives none ...
 _SLD_FACTORS = tuple(np.array(_SLD_VALUES) / 2.5)  # ... else scales of the scene's value (0.2-2.4)
 _SLD_SWEEPS = 2  # sweeps over the SLDs, one at a time
-SLD_VALUE_MAX = max(_SLD_VALUES)  # model windows are sized for this where the scene gives no SLD
 _UNKNOWN_SLD = 2.0  # SLD of a layer without start until its scan
 _DISTINCT_TILT_DEG = 1.5 * _TILT_SPACING_DEG  # candidates closer in tilt than this share a basin
 _INSIDE = 1e-3  # candidates stay this fraction of the box inside two bounds

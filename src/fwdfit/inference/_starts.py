@@ -30,8 +30,11 @@ from .._errors import FwdfitError
 from ..model.block._model import ForwardModel
 from ._parameters import FreeParameter
 from ..scene._scene import Scene
-from ._search import SLD_VALUE_MAX
 
+# SLDs the global search (_search) tries where the scene gives none: kept here, below the
+# search, because the starts size the refraction reach with the largest
+_SLD_VALUES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0)
+SLD_VALUE_MAX = max(_SLD_VALUES)  # model windows are sized for this where the scene gives no SLD
 _MEDIAN_NOISE = 1.25  # noise of a running median over that of a running mean
 _PLATEAU_SIGNIFICANCE = 8.0  # the plateau inside an edge, in the filtered noise: half of it is 4 sigma clear
 _MIN_RUN_UM = 12.0  # a stretch below the open beam this long marks the sample
