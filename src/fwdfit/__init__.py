@@ -3,6 +3,21 @@
 The flow: scene file -> ``load_scene`` (or a ``Scene`` built in Python; ``dump_scene``
 writes one) -> ``build_model`` + ``initial_params`` ->
 ``ForwardModel(params)`` gives (T, T_att) per profile -> ``fit`` -> result.
+
+The layout, bottom to top: a module imports its own folder or a lower rank, never a
+higher one nor a sibling of its rank, and no import loops (tests/test_layout.py):
+
+0 the root: _errors, _version, _interrupt, _progress (the standard library only)
+1 io/ (tables, time-of-flight readers); 1 reference/ (the exact tracer)
+2 scene/ (values, the TOML reader and writer, registry, limits, materials, spectra)
+3 model/ (the shared kernel and aperture); 3 paganin/ (phase retrieval)
+4 model/block/ (the layered block's plan, model and thin layers; one folder per geometry)
+5 inference/ (free parameters, starts, search, solver, objective, predictor and cache,
+  uncertainty, quality gate, fitter, sampler, simulate)
+6 outputs/ (a fit's files)
+7 images/ (TIFF stacks to profiles, image fits and series)
+8 tof/ (time-of-flight profiles)
+9 cli/ (the ``fwdfit`` command)
 """
 
 from importlib import import_module
