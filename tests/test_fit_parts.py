@@ -346,14 +346,15 @@ def test_compiled_model_is_kept_between_runs(tmp_path):
 
 def test_changed_code_does_not_load_programs_another_code_stored(tmp_path):
     """The stored programs are keyed by fwdfit's source as well as its version: a copy of
-    the package with one line added to the model (a checkout between releases) compiles
+    the package with one line added to the model (a checkout between releases; the model sits in
+    a subfolder, model/block/, which the key covers like the top folder) compiles
     and stores a program of its own instead of loading the one the installed code stored;
     the installed code, run again, loads its own (nothing new stored)."""
     path = _open_beam_line_scene(tmp_path)
     installed = Path(fwdfit.__file__).parent
     changed = tmp_path / "changed" / "fwdfit"
     shutil.copytree(installed, changed, ignore=shutil.ignore_patterns("__pycache__"))
-    model_source = changed / "_model.py"
+    model_source = changed / "model" / "block" / "_model.py"
     model_source.write_text(model_source.read_text() + "\n# a changed line\n")
     probe = ("import sys, jax; jax.config.update('jax_enable_x64', True); import fwdfit; "
              "fwdfit.enable_compilation_cache(sys.argv[2]); fwdfit.Fitter(sys.argv[1])")

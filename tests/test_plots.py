@@ -3,8 +3,7 @@ accepted, legends outside the data, uncertainty bands only where they can be see
 labels that name what is drawn, and ``profile``'s PNG with the profile beside the region.
 
 The plotting functions return their matplotlib ``Figure``; the tests inspect it (no PNG
-parsing). They are private (``fwdfit._fit_output``, ``fwdfit._radiograph``): the public
-face is the PNG each command writes.
+parsing): ``fwdfit.outputs.ProfilePlot`` and ``fwdfit.images.plot_radiograph_png``.
 """
 
 from __future__ import annotations
@@ -17,8 +16,8 @@ import tifffile
 from matplotlib.text import Text
 
 import fwdfit
-from fwdfit._fit_output import ProfilePlot
-from fwdfit._radiograph import plot_radiograph_png
+from fwdfit.outputs import ProfilePlot
+from fwdfit.images import plot_radiograph_png
 from fwdfit.cli import main
 from fwdfit.images import profile_from_stacks
 from helpers import small_scene

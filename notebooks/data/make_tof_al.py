@@ -1,6 +1,6 @@
 """Make the time-of-flight data of notebook 06: the Al block in 24 wavelength bins (3-6 Å).
 
-Exact Monte Carlo tracer (``fwdfit._reference.trace_reference``) fed NCrystal's own
+Exact Monte Carlo tracer (``fwdfit.reference.trace_reference``) fed NCrystal's own
 cross-sections for Al_sg225 (mu(lambda) with its Bragg edges, density x 0.97) and the
 coherent SLD from NCrystal's composition, 4 000 000 rays per bin (seed = bin index),
 plus 1 % Gaussian noise (numpy seed 7). Writes into ``tof_al/``: one CSV per bin
@@ -17,7 +17,7 @@ from pathlib import Path
 import NCrystal
 import numpy as np
 
-from fwdfit._reference import ReferenceLayer, trace_reference
+from fwdfit.reference import ReferenceLayer, trace_reference
 
 OUT = Path(__file__).resolve().parent / "tof_al"
 CFG = "Al_sg225.ncmat"
