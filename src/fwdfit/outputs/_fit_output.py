@@ -170,12 +170,12 @@ def write_fit(result: FitResult, out_dir: Path) -> None:
         (staging / "result.json").write_text(summary)
         plotted = set(np.linspace(0, len(result.profiles) - 1, MAX_PROFILE_PLOTS).round().astype(int).tolist()
                       if len(result.profiles) > MAX_PROFILE_PLOTS else range(len(result.profiles)))
-        plot = ProfilePlot(result) if plotted else None
-        for i, p in enumerate(result.profiles):
+        for p in result.profiles:  # every table first: a NaN stops the write before any plot is drawn
             write_columns(staging / f"{p.name}.csv", {
                 "x_um": p.x_um, "T": p.T, "T_model": p.T_model, "T_att": p.T_att,
                 "T_corrected": p.T_corrected, "T_att_err": p.T_att_err})
-            if i in plotted:
-                plot.save(staging / f"{p.name}.png", i)
+        plot = ProfilePlot(result) if plotted else None
+        for i in sorted(plotted):
+            plot.save(staging / f"{result.profiles[i].name}.png", i)
         write_tof(result, staging)
         (staging / "fitted_scene.toml").write_text(dump_scene(result.scene, out_dir, comment="written by fwdfit"))
