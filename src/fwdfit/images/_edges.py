@@ -11,8 +11,9 @@ edge moves little from row to row, the noise averages out); a face is found wher
 through three shifts). Strong absorbers match on their step, weak ones on their
 refraction, blurred detectors on the blurred template: one rule for all.
 
-A face that lies within a window's half-width of the image's ends is not looked for (the
-template must fit inside the row). Units: µm; shifts in pixels.
+Masked pixels (NaN) and the image's ends leave a template's window partly empty: it is
+matched over the pixels it shares with the row, as long as they hold half its contrast.
+Units: µm; shifts in pixels.
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ _DETECT_ROW = 3.0  # ... and the row's own score this many, or half the rows' me
 _SMOOTH_ROWS = 5  # rows whose scores are averaged to find a face (centred on the row)
 _LOCAL_PX = 3  # the row's own score is searched this many pixels either side of the averaged peak
 _WINDOW_MARGIN_UM = 10.0  # a face's template reaches this far beyond its refraction reach
+_SPACING_TOLERANCE = 0.3  # two faces found lie as far apart as the scene's start puts them, to within this
+_IN_VIEW_PX = 4  # a face this far inside the image's ends is in view (its refraction shows)
+_SCORE_CHUNK = 32  # rows scored at once (memory: rows x shifts x window)
 _SLD_NOMINAL, _MU_NOMINAL = 2.0, 10.0  # a template's SLD and mu where the scene gives none
 
 
@@ -60,6 +64,7 @@ class Faces:
     position_um: np.ndarray
     offsets_um: np.ndarray
     reach_um: float
+    compile_time_s: float = 0.0
 
 
 def _template_scene(scene: Scene, profile: Profile, x_um: np.ndarray) -> Scene:
@@ -92,9 +97,9 @@ def _face_offsets(scene: Scene) -> np.ndarray:
 
 
 def face_templates(scene: Scene, profile: Profile, accuracy: float | None = None
-                   ) -> tuple[list[FaceTemplate], np.ndarray, float]:
+                   ) -> tuple[list[FaceTemplate], np.ndarray, float, float]:
     """The model's profile around each face (faces closer than two reaches share one
-    window), the face offsets (n_faces,) µm and the window half-width µm.
+    window), the face offsets (n_faces,) µm, the window half-width µm and the compile time s.
 
     One program, evaluated once per window with the stack placed so that its face lies
     in the middle of a grid as wide as the window.
@@ -123,32 +128,48 @@ def face_templates(scene: Scene, profile: Profile, accuracy: float | None = None
     centres = np.array([[-offsets[g[0]]] for g in groups])  # face g[0] at x = 0
     T, _ = predict(centres)
     templates = [FaceTemplate(g[0], tuple(g), -half, T[k, : 2 * half + spans[k]]) for k, g in enumerate(groups)]
-    return templates, offsets, reach
+    return templates, offsets, reach, predict.compile_time_s
 
 
 def _scores(rows: np.ndarray, sigma: np.ndarray, template: np.ndarray) -> np.ndarray:
-    """Matched-filter score (rows, n - m + 1): the least-squares amplitude of the template
-    (m,) plus a free level in each window of each row (rows, n), over its error, for
-    errors sigma (rows,)."""
+    """Matched-filter score (rows, n + m - 1) of the template (m,) at every shift at which it
+    overlaps the rows (rows, n; NaN: masked): the least-squares amplitude of the template
+    plus a free level over the pixels it shares with the row, over its error (errors
+    sigma (rows,)). Shift k puts the template's first pixel on column k - m + 1. A shift
+    whose shared pixels hold less than half the template's contrast scores 0."""
+    m = len(template)
     t = template - template.mean()
-    norm = math.sqrt(float(np.sum(t * t)))
-    if not norm > 0:
-        return np.zeros((rows.shape[0], rows.shape[1] - len(t) + 1))
-    windows = np.lib.stride_tricks.sliding_window_view(rows, len(t), axis=1)  # (rows, n - m + 1, m)
-    return windows @ t / (norm * sigma[:, None])
+    full = float(np.sum(t * t))
+    out = np.zeros((rows.shape[0], rows.shape[1] + m - 1))
+    if not full > 0:
+        return out
+    padded = np.pad(rows, ((0, 0), (m - 1, m - 1)), constant_values=np.nan)
+    for first in range(0, len(rows), _SCORE_CHUNK):
+        part = np.lib.stride_tricks.sliding_window_view(padded[first:first + _SCORE_CHUNK], m, axis=1)
+        valid = np.isfinite(part)
+        data = np.where(valid, part, 0.0)
+        w = valid.astype(float)
+        n_w, s_t, s_tt = w.sum(axis=2), w @ t, w @ (t * t)
+        s_d, s_dt = data.sum(axis=2), data @ t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            covariance = s_dt - s_d * s_t / n_w
+            variance = s_tt - s_t * s_t / n_w
+            score = covariance / (sigma[first:first + _SCORE_CHUNK, None] * np.sqrt(variance))
+        out[first:first + _SCORE_CHUNK] = np.where((variance >= 0.5 * full) & (n_w >= 2), score, 0.0)
+    return out
 
 
 def _rows_median(score: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's score (rows, k) and its neighbours' (n rows centred on it, fewer at the
-    ends): their median, scaled so that a score of noise stays unit normal (a median of m
-    normal values has variance pi / 2m), and the plain median (rows, k), in a row's units. A median: one row far clearer than its neighbours (or a row of another
-    width) does not put its face into theirs."""
-    half = n // 2
-    padded = np.pad(score, ((half, half), (0, 0)), constant_values=np.nan)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, n, axis=0)  # (rows, k, n)
-    count = np.isfinite(windows[:, :1, :]).sum(axis=2)  # (rows, 1)
-    median = np.nanmedian(windows, axis=2)
-    return median * np.sqrt(2.0 * count / np.pi), median
+    """Each row's score (rows, k) with its neighbours' (the n rows centred on it, or the n
+    nearest at the image's ends): their median, scaled so that a score of noise stays unit
+    normal (a median of m normal values has variance pi / 2m), and the plain median
+    (rows, k), in a row's units. A median: one row far clearer than its neighbours (or a
+    row of another width) does not put its face into theirs."""
+    n = min(n, len(score))
+    windows = np.lib.stride_tricks.sliding_window_view(score, n, axis=0)  # (rows - n + 1, k, n)
+    first = np.clip(np.arange(len(score)) - n // 2, 0, len(score) - n)
+    median = np.median(windows, axis=2)[first]
+    return median * math.sqrt(2.0 * n / math.pi), median
 
 
 def _peak(score: np.ndarray, at: int) -> float:
@@ -164,19 +185,19 @@ def _peak(score: np.ndarray, at: int) -> float:
 
 def find_faces(scene: Scene, profile: Profile, rows: np.ndarray, use: np.ndarray,
                accuracy: float | None = None) -> Faces:
-    """The faces of the stack in every row of ``rows`` (rows, n) (masked pixels filled in)
-    that ``use`` (rows,) marks: per template group the strongest match, where the rows'
+    """The faces of the stack in every row of ``rows`` (rows, n; NaN: masked) that ``use``
+    (rows,) marks: per template group the strongest match, where the rows'
     mean score clears ``_DETECT``, placed in the row's own score."""
     pixel = scene.instruments[profile.instrument].pixel_um
-    templates, offsets, reach = face_templates(scene, profile, accuracy)
+    templates, offsets, reach, compile_time = face_templates(scene, profile, accuracy)
     n_rows, n = rows.shape
-    sigma = np.array([noise_sigma(row) for row in rows])
+    sigma = np.array([noise_sigma(row[np.isfinite(row)]) if np.isfinite(row).sum() > 2 else 0.0 for row in rows])
     sigma = np.maximum(sigma, 0.1 * np.median(sigma[use]) if use.any() else 0.0) + 1e-12
     position = np.full((n_rows, len(offsets)), np.nan)
+    strength = np.full((n_rows, len(offsets)), np.nan)
     for template in templates:
-        if len(template.T) >= n:
-            continue
-        score = _scores(rows, sigma, template.T)  # shift k: the template's first pixel on column k
+        m = len(template.T)
+        score = _scores(rows, sigma, template.T)  # shift k: the template's first pixel on column k - m + 1
         score[~use] = 0.0
         smooth, typical = _rows_median(score, _SMOOTH_ROWS)
         best = np.argmax(smooth, axis=1)
@@ -192,18 +213,38 @@ def find_faces(scene: Scene, profile: Profile, rows: np.ndarray, use: np.ndarray
             shift = lo + _peak(score[r, lo:hi], k - lo)
             # column c's left edge is at x_um[0] - pixel / 2 + c * pixel; the face lies
             # -start_px pixels right of the window's first pixel's left edge
-            position[r, template.face] = profile.x_um[0] - 0.5 * pixel + (shift - template.start_px) * pixel
-    return Faces(position, offsets, reach)
+            position[r, template.face] = profile.x_um[0] - 0.5 * pixel + (shift - m + 1 - template.start_px) * pixel
+            strength[r, template.face] = score[r, k]
+    _keep_consistent(position, strength, offsets, reach)
+    return Faces(position, offsets, reach, compile_time)
+
+
+def _keep_consistent(position: np.ndarray, strength: np.ndarray, offsets: np.ndarray, reach: float) -> None:
+    """Drop (NaN) the faces of a row that contradict a clearer one: two faces must lie in
+    the stack's order, as far apart as the scene puts them to within ``_SPACING_TOLERANCE``
+    (plus a window's half-width). A template also matches, more weakly, the face on the
+    other side of a layer (the loss inside a left face beside the loss inside a right
+    one); in place of a face out of view it would be taken for it."""
+    for r in np.flatnonzero(np.isfinite(position).sum(axis=1) > 1):
+        kept: list[int] = []
+        for j in np.argsort(-np.nan_to_num(strength[r], nan=-np.inf)):
+            if not np.isfinite(position[r, j]):
+                continue
+            if all(abs((position[r, j] - position[r, i]) - (offsets[j] - offsets[i]))
+                   <= _SPACING_TOLERANCE * abs(offsets[j] - offsets[i]) + reach for i in kept):
+                kept.append(j)
+            else:
+                position[r, j] = np.nan
 
 
 def in_view(faces: Faces, centres_um: np.ndarray, x_um: np.ndarray, pixel_um: float) -> np.ndarray:
-    """Which faces (n_faces,) lie in the image, a window's half-width inside its ends, in at
-    least half the rows with a centre (rows,) µm."""
+    """Which faces (n_faces,) lie in the image, ``_IN_VIEW_PX`` pixels inside its ends, in
+    at least half the rows with a centre (rows,) µm."""
     known = np.isfinite(centres_um)
     if not known.any():
         return np.zeros(len(faces.offsets_um), bool)
     x = centres_um[known, None] + faces.offsets_um[None, :]
-    low, high = x_um[0] - 0.5 * pixel_um + faces.reach_um, x_um[-1] + 0.5 * pixel_um - faces.reach_um
+    low, high = x_um[0] + _IN_VIEW_PX * pixel_um, x_um[-1] - _IN_VIEW_PX * pixel_um
     return np.mean((x > low) & (x < high), axis=0) >= 0.5
 
 

@@ -215,8 +215,7 @@ def edge_centres(scene: Scene, profile: Profile, accuracy: float | None = None,
     image = profile.image
     flags = np.where(np.isnan(image).mean(axis=1) > _MAX_MASKED, FLAG_MASKED, 0)
     if faces is None:
-        faces = find_faces(scene, profile, np.array([_filled(row) if np.isfinite(row).any() else np.ones(len(row))
-                                                     for row in image]), flags == 0, accuracy)
+        faces = find_faces(scene, profile, image, flags == 0, accuracy)
     estimate = faces.position_um - faces.offsets_um[None, :]  # the centre each face puts the stack at
     found = np.isfinite(estimate)
     count = found.sum(axis=1)
@@ -385,15 +384,21 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     n_pixels = np.isfinite(sigma).sum(axis=1)
     masked = np.isnan(profile.image)
     begin = time.perf_counter()
-    edges, flags = edge_centres(scene, profile, accuracy)
+    usable = np.isnan(profile.image).mean(axis=1) <= _MAX_MASKED
+    with say.ticking("finding the faces in each row"):
+        faces = find_faces(scene, profile, profile.image, usable, accuracy)
+    edges, flags = edge_centres(scene, profile, accuracy, faces)
+    seen = in_view(faces, edges, profile.x_um, pixel)
+    check_determined(names.shared, seen, scene, scene.path)
     n_rows, n_own = len(edges), len(names.per_row)
     say(f"{profile.name}: {n_rows} rows x {profile.image.shape[1]} pixels, {int(masked.sum())} masked pixels; "
-        f"edges found in {int(np.isfinite(edges).sum())} rows")
+        f"edges found in {int(np.isfinite(edges).sum())} rows; faces in view: "
+        f"{', '.join(str(int(j)) for j in np.flatnonzero(seen))} of 0-{len(seen) - 1}")
     binning = _Binning.of(edges, pixel)
     todo = np.flatnonzero((flags & _UNFITTED) == 0)
     use, centres = np.isfinite(edges), edges.copy()
     fitter = rows = shared = None
-    compile_time = row_time = 0.0
+    compile_time, row_time = faces.compile_time_s, 0.0
     for round_ in range(rounds):
         profiles = binning.profiles(profile, centres, use, sigma, pixel)
         if fitter is None:
