@@ -144,3 +144,77 @@ def test_a_multilayer_with_part_of_its_faces_in_view(tmp_path, capsys):
     assert main(["fit-image", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 1
     err = capsys.readouterr().err.strip()
     assert "'layers.Al.thickness_um'" in err and "layers.ox" not in err and "faces in view: 0, 1 of 0-3" in err, err
+
+
+# ------------------------------------------------------------------ orientation, region, mask
+
+LAYOUT_KEYS = 'profile_along = "columns"\nroi = [40, 540, 6, 46]\nmask = "mask.tif"'
+
+
+def _columns_image(folder, noise_seed=18):
+    """The weak block's 40 rows as the columns 6-45 of an 80 x 580 detector image turned on
+    its side (the edge horizontal), the region's pixels 40-539 along them; outside it 0.5
+    (a holder), a 4 x 100 patch and one pixel masked. Returns the scene, truth and mask."""
+    centres, T, T_att = _block(1.4, 0.0, n_rows=40, n_rays=4_000_000, phase=1.0)
+    image = T + 0.005 * np.random.default_rng(noise_seed).standard_normal(T.shape)
+    full = np.full((52, 580), 0.5)
+    full[6:46, 40:540] = image
+    mask = np.zeros(full.shape, np.uint8)
+    mask[20:24, 100:200] = 1
+    mask[30, 300] = 255
+    scene = _scene_file(folder, full.T, x0=-696.0)  # x0 of the file's first pixel: -600 - 40 pixels
+    tifffile.imwrite(folder / "mask.tif", mask.T)
+    scene.write_text(scene.read_text().replace("x0_um = -696.0", "x0_um = -696.0\n" + LAYOUT_KEYS))
+    return scene, centres, T_att, mask.T
+
+
+def test_horizontal_edges_in_a_region_with_a_mask(tmp_path):
+    """profile_along = "columns", roi and mask: the outputs have the file's shape and
+    orientation, NaN outside the region (and T_corrected on the mask); the fit is the
+    weak block's."""
+    scene, centres, T_att, mask = _columns_image(tmp_path)
+    loaded = fwdfit.load_scene(scene)
+    assert loaded.profiles[0].image.shape == (40, 500)
+    assert loaded.profiles[0].x_um[0] == pytest.approx(-600.0 + 1.2)
+    again = fwdfit.load_scene(fwdfit.save_scene(loaded, tmp_path / "again.toml"))  # the keys round-trip
+    assert again.profiles[0].image_layout == loaded.profiles[0].image_layout
+    np.testing.assert_allclose(again.profiles[0].x_um, loaded.profiles[0].x_um)
+    out = tmp_path / "out"
+    assert main(["fit-image", str(scene), "--out", str(out), "--quiet"]) == 0
+    att = tifffile.imread(out / "T_att.tif")
+    assert att.shape == (580, 52)
+    inside = np.zeros(att.shape, bool)
+    inside[40:540, 6:46] = True
+    assert np.isnan(att[~inside]).all() and np.isfinite(att[inside]).all()
+    corrected = tifffile.imread(out / "T_corrected.tif")
+    assert corrected.shape == (580, 52) and np.array_equal(np.isnan(corrected), ~inside | (mask != 0))
+    region = att[40:540, 6:46].T
+    assert rms(np.nan_to_num(region - T_att)) <= 0.003
+    rows = read_table(out / "rows.csv")
+    assert np.array_equal(rows["column"], np.arange(6, 46))
+    assert np.mean(np.abs(rows["centre_um"] - centres) < 1.0) >= 0.95
+    result = json.loads((out / "result.json").read_text())
+    assert result["masked_pixels"] == 401
+    assert abs(result["parameters"]["layers.Al.thickness_um"]["value"] - 1000.0) < 2.0
+
+
+@pytest.mark.parametrize("change, words", [
+    (("roi = [40, 540, 6, 46]", "roi = [40, 600, 6, 46]"), ["roi", "not a region of the image", "580 x 52"]),
+    (("roi = [40, 540, 6, 46]", "roi = [40, 540, 6]"), ["roi", "four whole pixel indices"]),
+    (('profile_along = "columns"', 'profile_along = "diagonal"'), ["profile_along", "rows, columns"]),
+    (('mask = "mask.tif"', 'mask = "small.tif"'), ["mask", "small.tif is 10 x 10 pixels", "580 x 52"]),
+])
+def test_bad_regions_and_masks_are_refused(tmp_path, capsys, change, words):
+    full = np.ones((52, 580))
+    _scene_file(tmp_path, full.T, x0=-696.0)
+    tifffile.imwrite(tmp_path / "mask.tif", np.zeros((580, 52), np.uint8))
+    tifffile.imwrite(tmp_path / "small.tif", np.zeros((10, 10), np.uint8))
+    scene = tmp_path / "scene.toml"
+    scene.write_text(scene.read_text().replace("x0_um = -696.0", "x0_um = -696.0\n" + LAYOUT_KEYS.replace(*change)))
+    out = tmp_path / "out"
+    assert main(["fit-image", str(scene), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("fwdfit: error:"), err
+    for word in words:
+        assert word in err, err
+    assert not out.exists()

@@ -35,7 +35,7 @@ from ..inference._parameters import assembler, free_parameters
 from ..inference._geometry import geometry_of
 from ..inference._predict import Predictor
 from .._progress import Progress, as_progress
-from ..scene._scene import Profile, Scene, load_scene
+from ..scene._scene import ImageLayout, Profile, Scene, load_scene
 from ..inference._starts import noise_sigma
 from ._edges import Faces, check_determined, find_faces, in_view
 
@@ -62,7 +62,7 @@ _UNFITTED = FLAG_NO_EDGE | FLAG_MASKED
 
 @dataclasses.dataclass(frozen=True)
 class ImageFit:
-    """The fit of one image (rows, n): shared values from ``shared`` (a FitResult of the
+    """The fit of one image's profiles (rows, n; ``layout`` says where they lie in the file): shared values from ``shared`` (a FitResult of the
     averaged profiles); per row the values and errors (rows, n_per_row) of the parameters
     ``per_row`` (the centre first; NaN: not fitted), chi-square, fitted pixels and flags
     (rows,); images (rows, n) of the data, model, T_att and T_corrected (NaN where masked,
@@ -90,6 +90,7 @@ class ImageFit:
     wall_time_s: float  # after compilation
     row_time_s: float  # the per-row fits of the last round alone
     rounds: int
+    layout: ImageLayout | None = None  # where the rows lie in the image file (None: the whole file, by rows)
 
     @property
     def centre_um(self) -> np.ndarray:
@@ -447,7 +448,7 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     wall = time.perf_counter() - begin - compile_time
     result = ImageFit(profile.name, profile.x_um, shared, names.per_row, values, errors, edges, chi2, n_pixels,
                       steps, flags, profile.image, sigma, T_model, T_att, T_corrected, sigma_from_data,
-                      int(masked.sum()), compile_time, wall, row_time, rounds)
+                      int(masked.sum()), compile_time, wall, row_time, rounds, profile.image_layout)
     say(result.summary())
     return result
 
