@@ -20,13 +20,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._errors import FwdfitError
 from ..inference._geometry import geometry_of
 from ..inference._parameters import assembler, free_parameters
-from ..inference._predict import Predictor
 from ..inference._starts import _blur_um, noise_sigma, refraction_reach_um
 from ..scene._scene import Profile, Scene
 
@@ -124,11 +126,14 @@ def face_templates(scene: Scene, profile: Profile, accuracy: float | None = None
     names = ["sample.centre_um"]
     free = free_parameters(template_scene, vary=names, bounds={})
     model = geometry_of(template_scene).build_model(template_scene, accuracy, names, None)
-    predict = Predictor(model, assembler(template_scene, free), len(free))
-    centres = np.array([[-offsets[g[0]]] for g in groups])  # face g[0] at x = 0
-    T, _ = predict(centres)
+    assemble = assembler(template_scene, free)
+    # a plain jit, not a Predictor: a one-off evaluation, and programs that fwdfit's own
+    # store serialised failed to run when loaded in a later process ("Function ... not found")
+    begin = time.perf_counter()
+    centres = jnp.asarray([[-offsets[g[0]]] for g in groups])  # face g[0] at x = 0
+    T = np.asarray(jax.jit(jax.vmap(lambda v: model.flat(*assemble(v))[0]))(centres))
     templates = [FaceTemplate(g[0], tuple(g), -half, T[k, : 2 * half + spans[k]]) for k, g in enumerate(groups)]
-    return templates, offsets, reach, predict.compile_time_s
+    return templates, offsets, reach, time.perf_counter() - begin
 
 
 def _scores(rows: np.ndarray, sigma: np.ndarray, template: np.ndarray) -> np.ndarray:
