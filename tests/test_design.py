@@ -96,3 +96,15 @@ def test_bad_design_tables_are_refused_in_one_line(tmp_path, capsys, table, mess
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0] and err[0].startswith("fwdfit: error:"), err
     assert not out.exists()
+
+
+def test_design_table_reads_and_writes_back(tmp_path):
+    """[design] read from a scene file and written back by save_scene: the same DesignSpec."""
+    text = EXAMPLE.read_text().replace('file = "', f'file = "{EXAMPLE.parent}/') + (
+        '\n[design]\ntarget = ["layers.Al.thickness_um"]\ndistances_mm = [1.1, 4.0]\nspectra = ["white"]\n'
+        "exposure = 8.0\nnoise = 0.004\n")
+    (tmp_path / "scene.toml").write_text(text)
+    scene = fwdfit.load_scene(tmp_path / "scene.toml")
+    assert scene.design == fwdfit.DesignSpec((THICKNESS,), (1.1, 4.0), ("white",), 8.0, 0.004)
+    again = fwdfit.load_scene(fwdfit.save_scene(scene, tmp_path / "copy" / "scene.toml"))
+    assert again.design == scene.design
