@@ -37,7 +37,9 @@ _MIN_DEFLECTION_RAD = 0.02  # aim-window margin: smallest deflection allowed for
 _MARGIN_UM = 50.0  # ... plus a fixed slack (µm)
 _FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _RIM_MIN_UM = 1e-5  # closest log cell to a rim (µm): below R(1 - n) at 0.8 Å for R >= 5 µm
-_RIM_CELLS = 64  # log cells per side of a rim
+_RIM_CELLS = 64  # log cells per side of a rim (Monte Carlo)
+_RIM_POINTS = 200  # log-spaced aim points per side of a rim (quadrature)
+_POINT_UM = 1e-6  # a segment shorter than this lands whole (quadrature)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,15 +263,149 @@ def _land(circles, centre_um, delta_um, x_aim, ex, ez, lam, mu_table, rng=None):
     return x_det, weight, n_dropped
 
 
+def _first_edge_past(edges, x):
+    """searchsorted(edges, x, side="right"), by arithmetic where the pixels are equal."""
+    width = (edges[-1] - edges[0]) / (edges.size - 1)
+    if np.allclose(np.diff(edges), width, rtol=1e-12, atol=0.0):
+        return np.clip(np.floor((x - edges[0]) / width), -1, edges.size - 1).astype(np.int64) + 1
+    return np.searchsorted(edges, x, side="right")
+
+
+def _splat(x0, x1, weight, edges, out):
+    """Add segments' weights, spread uniformly over [x0, x1] (µm; the detector image of a piece of
+    the aim line between two neighbouring rays), into the pixels (edges) of ``out`` (n_pixel,).
+
+    A segment inside one pixel (or shorter than _POINT_UM) lands whole; a longer one adds a
+    ramp to the cumulative F(e) = Σ s (e - p)_+ with slope s = ±weight/length at its ends."""
+    ok = np.isfinite(x0) & np.isfinite(x1) & (weight != 0)
+    lo, hi, weight = np.minimum(x0, x1)[ok], np.maximum(x0, x1)[ok], weight[ok]
+    n_pix = edges.size - 1
+    i_lo, i_hi = _first_edge_past(edges, lo), _first_edge_past(edges, hi)
+    point = (i_lo == i_hi) | (hi - lo < _POINT_UM)
+    pix = np.where(i_lo == i_hi, i_lo, _first_edge_past(edges, 0.5 * (lo + hi)))[point] - 1
+    inside = (pix >= 0) & (pix < n_pix)
+    out += np.bincount(pix[inside], weight[point][inside], n_pix)
+    ramp = ~point
+    slope = weight[ramp] / (hi - lo)[ramp]
+    ends = np.concatenate((lo[ramp], hi[ramp]))
+    s = np.concatenate((slope, -slope))
+    first = np.concatenate((i_lo[ramp], i_hi[ramp]))  # the first edge past each end
+    slope_sum = np.cumsum(np.bincount(first, s, n_pix + 2))[: n_pix + 1]
+    moment = np.cumsum(np.bincount(first, s * ends, n_pix + 2))[: n_pix + 1]
+    out += np.diff(edges * slope_sum - moment)
+
+
+def _canonical(circles: _Circles, b, lam, mu_table):
+    """Rays travelling along +z at x = b (µm, axis at the origin), one wavelength each: their exit
+    state (px, pz, dx, dz) and weight after the sample; rays that miss pass along their line."""
+    r0 = circles.radii_um[0]
+    hit = np.abs(b) < r0
+    px, pz = b.copy(), np.zeros(b.size)
+    dx, dz, wt = np.zeros(b.size), np.ones(b.size), np.ones(b.size)
+    if hit.any():
+        entry = -np.sqrt(r0 * r0 - b[hit] ** 2)
+        (ex, ez, edx, edz, ew), dropped = _trace(circles, b[hit], entry, np.zeros(entry.size),
+                                               np.ones(entry.size), lam[hit], mu_table[hit], None)
+        px[hit], pz[hit], dx[hit], dz[hit], wt[hit] = ex, ez, edx, edz, ew
+    else:
+        dropped = 0
+    return px, pz, dx, dz, wt, dropped
+
+
+def _aim_grid(lo, hi, step_um, offset, radii_um, rim_width_um, n_rim):
+    """Impact parameters (µm, about the axis): a uniform grid of ``step_um`` shifted by
+    ``offset`` steps, plus log-spaced points on both sides of every rim (from _RIM_MIN_UM to
+    rim_width_um), where the map to the detector bends most sharply."""
+    grid = lo + step_um * (offset + np.arange(int(np.ceil((hi - lo) / step_um)) + 1))
+    steps = np.geomspace(_RIM_MIN_UM, rim_width_um, n_rim)
+    rims = np.concatenate((radii_um, -radii_um))
+    near = (rims[:, None] + np.concatenate((steps, -steps))[None, :]).ravel()
+    points = np.unique(np.concatenate(([lo, hi], grid, rims, near)))
+    return points[(points >= lo) & (points <= hi)]
+
+
+def _aperture_nodes(aperture, d_um, u):
+    """Aperture x (µm) at stratified uniforms u: uniform for 'square', the x-marginal of a disk
+    (inverse of its CDF (t sqrt(1 - t²) + arcsin t)/π + 1/2) for 'circular'."""
+    if aperture == "square":
+        return d_um * (u - 0.5)
+    t = np.linspace(-1.0, 1.0, 4001)
+    cdf = (t * np.sqrt(1.0 - t * t) + np.arcsin(t)) / np.pi + 0.5
+    return 0.5 * d_um * np.interp(u, cdf, t)
+
+
+def _quadrature(full, straight, shells, centre_um, delta, lever, aperture, d_um, lam_tab, w_tab,
+                edges, psf_fwhm_um, aim_lo, aim_hi, n_wavelengths, n_aperture, aim_step_um,
+                rim_width_um, n_batches, rng):
+    """Deterministic tracing on stratified, jittered nodes (wavelength, aperture point, aim grid);
+    each batch its own jitter. Every ray of a wavelength is traced once along +z: a circle is
+    unchanged by rotations about its centre, so a ray from aperture point x_ap is that ray
+    rotated by its angle ε to the axis. Between neighbouring aim points the map to the detector
+    is taken as linear (``_splat``). Returns sums (3, n_batches, n_pixel) and rays dropped."""
+    n_pix = edges.size - 1
+    sums = np.zeros((3, n_batches, n_pix))
+    dropped, n_traced = 0, 0
+    for batch in range(n_batches):
+        b = _aim_grid(aim_lo - centre_um, aim_hi - centre_um, aim_step_um, rng.random(), full.radii_um,
+                      rim_width_um, _RIM_POINTS)
+        u_lam = (np.arange(n_wavelengths) + rng.random(n_wavelengths)) / n_wavelengths
+        lams = _sample_spectrum(_Columns([u_lam]), lam_tab, w_tab, n_wavelengths)
+        x_ap = _aperture_nodes(aperture, d_um, (np.arange(n_aperture) + rng.random(n_aperture)) / n_aperture)
+        blur = (rng.normal(0.0, psf_fwhm_um / _FWHM_PER_SIGMA, n_aperture) if psf_fwhm_um > 0
+                else np.zeros(n_aperture))[:, None]
+        share = 1.0 / (n_wavelengths * n_aperture)
+        for lam in lams:
+            lam_b = np.full(b.size, lam)
+            mu_table = 1e-6 * np.stack([np.zeros(b.size)] + [
+                shells[k].mu_table(lam_b) if k >= 0 and shells[k].mu_table else np.zeros(b.size)
+                for k in full.layer_of_region[1:]], axis=1)
+            exits = [_canonical(c, b, lam_b, mu_table) for c in (full, straight)]
+            dropped += exits[0][5]
+            n_traced += 2 * b.size
+            # The ray through the aim point (centre + x0, 0) from (x_ap, delta - lever) has
+            # tan ε = (centre + x0 - x_ap) / (lever - delta) and impact parameter b = x0 cos ε.
+            t = (centre_um + b[None, :] - x_ap[:, None]) / (lever - delta)
+            for _ in range(2):  # the fixed point converges by ~1e-6 per step
+                t = (centre_um + b[None, :] * np.sqrt(1.0 + t * t) - x_ap[:, None]) / (lever - delta)
+            cos_e = 1.0 / np.sqrt(1.0 + t * t)
+            sin_e = t * cos_e
+            x0 = b[None, :] / cos_e
+            da = share * np.diff(x0, axis=1)
+            x_open = centre_um + x0 + delta * t + blur
+            # Pieces of the aim line that miss the sample land alike with and without it.
+            hit = np.abs(b) < full.radii_um[0]
+            hit = np.broadcast_to(hit[1:] | hit[:-1], da.shape)
+            parts = (x_open[:, :-1], x_open[:, 1:], da)
+            missed = np.zeros(edges.size - 1)
+            _splat(*(p[~hit] for p in parts), edges, missed)
+            sums[:, batch] += missed
+            _splat(*(p[hit] for p in parts), edges, sums[2, batch])
+            for row, (px, pz, dx, dz, wt, _) in enumerate(exits):
+                qx, qz = px * cos_e + pz * sin_e, -px * sin_e + pz * cos_e
+                vx, vz = dx * cos_e + dz * sin_e, -dx * sin_e + dz * cos_e
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    x_det = np.where(vz > 0, centre_um + qx + (delta - qz) * vx / vz, np.inf) + blur
+                w_seg = da * 0.5 * (wt[1:] + wt[:-1])[None, :]
+                _splat(x_det[:, :-1][hit], x_det[:, 1:][hit], w_seg[hit], edges, sums[row, batch])
+    return sums, dropped, n_traced
+
+
 def trace_cylinder_reference(
     shells: Sequence[ReferenceLayer], *, outer_radius_um: float, core: str = "filled",
     centre_um: float = 0.0, aperture: str, aperture_mm: float, aperture_distance_m: float,
     distance_mm: float, spectrum_lambda_A: np.ndarray, spectrum_weight: np.ndarray,
     pixel_edges_um: np.ndarray, psf_fwhm_um: float = 0.0, fresnel: bool = False, refraction: bool = True,
-    n_rays: int = 2_000_000, seed: int = 0, n_batches: int = 8,
-    rim_fraction: float = 0.0, rim_width_um: float = 80.0,
+    method: str = "quadrature", n_wavelengths: int = 16, n_aperture: int = 128, aim_step_um: float = 2.0,
+    n_rays: int = 2_000_000, rim_fraction: float = 0.3, rim_width_um: float = 150.0,
+    seed: int = 0, n_batches: int = 4,
 ) -> ReferenceResult:
-    """Monte Carlo transmission profile of concentric cylindrical shells, exact 2-D geometric optics.
+    """Transmission profile of concentric cylindrical shells, exact 2-D geometric optics.
+
+    Two ways to integrate over the aperture, the spectrum and the aim point, the same physics:
+    "quadrature" (default) traces stratified, jittered nodes and spreads each piece of the aim
+    line onto the pixels it maps to, almost free of noise (about 1e-4 in T for the defaults);
+    "monte_carlo" draws rays (scrambled Halton) and histograms them, and alone offers Fresnel
+    partial reflection (a reflection is a random branch, which the quadrature cannot follow).
 
     Args:
         shells: from the outside in (at least one); ``thickness_um`` radial (µm), SLD and mu(λ)
@@ -286,13 +422,20 @@ def trace_cylinder_reference(
             linear between rows, zero outside.
         pixel_edges_um: (n_pixel + 1,) strictly increasing detector pixel edges (µm).
         psf_fwhm_um: FWHM of a Gaussian detector blur (µm); 0 for none.
-        fresnel: also reflect partially above the critical angle (Fresnel reflectivity).
+        fresnel: also reflect partially above the critical angle (Fresnel reflectivity;
+            method "monte_carlo" only).
         refraction: False traces T with n = 1 too (then T equals T_att).
-        n_rays: number of rays traced.
+        method: "quadrature" or "monte_carlo".
+        n_wavelengths, n_aperture: quadrature nodes per batch (equal-weight strata of the spectrum
+            and the aperture, one jittered node each).
+        aim_step_um: spacing of the quadrature's aim points (µm, in the plane of the axis);
+            ``_RIM_POINTS`` more, log-spaced, on each side of every rim up to ``rim_width_um``.
+        n_rays: Monte Carlo rays in all.
+        rim_fraction: Monte Carlo share of the rays aimed log-uniformly within ``rim_width_um``
+            (µm) of any circle's edge, the rest uniform over the window; weighted to stay unbiased.
+        rim_width_um: see aim_step_um and rim_fraction.
         seed: random seed.
         n_batches: batches for the error estimate (>= 2; >= 5 recommended).
-        rim_fraction: share of the rays aimed within ``rim_width_um`` (µm, in the plane of the
-            axis) of any circle's edge, the rest uniform over the window; weighted to stay unbiased.
 
     Returns:
         ReferenceResult with (n_pixel,) arrays T, T_err, T_att, T_att_err.
@@ -302,6 +445,12 @@ def trace_cylinder_reference(
     edges = np.asarray(pixel_edges_um, float)
     _validate(shells, outer_radius_um, core, aperture, aperture_mm, aperture_distance_m, distance_mm,
               lam_tab, w_tab, edges, psf_fwhm_um, n_rays, n_batches, rim_fraction, rim_width_um)
+    if method not in ("quadrature", "monte_carlo"):
+        raise FwdfitError(f"unknown method {method!r} (use 'quadrature' or 'monte_carlo')")
+    if method == "quadrature" and fresnel:
+        raise FwdfitError("Fresnel partial reflection needs method='monte_carlo'")
+    if not (n_wavelengths >= 1 and n_aperture >= 1 and aim_step_um > 0):
+        raise FwdfitError("need n_wavelengths >= 1, n_aperture >= 1 and aim_step_um > 0")
     full = _circles(shells, outer_radius_um, core, refraction)
     straight = _circles(shells, outer_radius_um, core, False)
     delta, lever = 1e3 * distance_mm, 1e6 * aperture_distance_m
@@ -313,12 +462,18 @@ def trace_cylinder_reference(
     margin = max(_MIN_DEFLECTION_RAD, 4.0 * theta_c) * (delta + outer_radius_um) + _MARGIN_UM
     # Rays that miss the sample must only cover the window's straight projection; the margin is
     # needed only for rays through the sample's shadow [centre - R, centre + R].
-    penumbra = 0.5 * d_um * delta / lever
+    penumbra = 0.5 * d_um * delta / lever + 3.0 * psf_fwhm_um
     proj_lo = edges[0] * (lever - delta) / lever - penumbra
     proj_hi = edges[-1] * (lever - delta) / lever + penumbra
     r0 = outer_radius_um
     aim_lo = min(proj_lo, max(centre_um - r0, proj_lo - margin))
     aim_hi = max(proj_hi, min(centre_um + r0, proj_hi + margin))
+    if method == "quadrature":
+        rng = np.random.default_rng(seed)
+        sums, n_dropped, n_traced = _quadrature(
+            full, straight, shells, centre_um, delta, lever, aperture, d_um, lam_tab, w_tab, edges,
+            psf_fwhm_um, aim_lo, aim_hi, n_wavelengths, n_aperture, aim_step_um, rim_width_um, n_batches, rng)
+        return _result(sums, n_traced, n_dropped)
     cuts, density = _aim_density(aim_lo, aim_hi, centre_um, full.radii_um, rim_fraction, rim_width_um)
 
     n_pix = edges.size - 1
@@ -354,8 +509,13 @@ def trace_cylinder_reference(
                 ok = (pix >= 0) & (pix < n_pix)
                 sums[row, batch] += np.bincount(pix[ok], (wts * aim_weight)[ok], n_pix)
 
+    return _result(sums, n_rays, n_dropped)
+
+
+def _result(sums, n_rays, n_dropped) -> ReferenceResult:
+    """T and T_att (ratio of the batch sums to the open beam's) and their batch errors."""
     with np.errstate(divide="ignore", invalid="ignore"):
         total = sums[:2].sum(axis=1) / sums[2].sum(axis=0)
-        err = np.std(sums[:2] / sums[2], axis=1, ddof=1) / np.sqrt(n_batches)
+        err = np.std(sums[:2] / sums[2], axis=1, ddof=1) / np.sqrt(sums.shape[1])
     return ReferenceResult(T=total[0], T_err=err[0], T_att=total[1], T_att_err=err[1],
                            n_rays=int(n_rays), n_dropped=int(n_dropped))
