@@ -38,7 +38,7 @@ _MARGIN_UM = 50.0  # ... plus a fixed slack (µm)
 _FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _RIM_MIN_UM = 1e-5  # closest log cell to a rim (µm): below R(1 - n) at 0.8 Å for R >= 5 µm
 _RIM_CELLS = 64  # log cells per side of a rim (Monte Carlo)
-_RIM_POINTS = 200  # log-spaced aim points per side of a rim (quadrature)
+_RIM_POINTS = 60  # log-spaced aim points per side of a rim (quadrature)
 _POINT_UM = 1e-6  # a segment shorter than this lands whole (quadrature)
 
 
