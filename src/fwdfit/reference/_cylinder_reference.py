@@ -1,4 +1,4 @@
-"""Exact Monte Carlo ray tracer for concentric circles (rods and tubes) in float64 NumPy.
+"""Exact ray tracer for concentric circles (rods and tubes) in float64 NumPy.
 
 The independent reference for a cylinder model, written from the physics, not from any model code.
 Frame: 2-D, the plane perpendicular to the cylinder axis (the axis runs along the detector's columns);
@@ -12,13 +12,19 @@ a few mrad of vertical divergence) and are left out: the trace is 2-D.
 
 At every circle: vector Snell's law at the radial normal with n² = q = 1 - λ²ρ/π, total (specular)
 reflection, weight unchanged, where the refracted cosine would be imaginary; optionally Fresnel
-partial reflection (probability |(k1 - k2)/(k1 + k2)|² of the normal wave-vector components). Rays cross any number of shells, are reflected inside a shell and
-leave; attenuation exp(-Σ mu(λ) path) along the actual path. The open beam is the same rays without
-the sample (common random numbers), so T = 1 exactly where no traced ray lands.
+partial reflection (probability |(k1 - k2)/(k1 + k2)|² of the normal wave-vector components).
+Rays cross any number of shells, are reflected inside a shell and leave; attenuation
+exp(-Σ mu(λ) path) along the actual path. The open beam is the same rays without the sample,
+so T = 1 exactly where no ray through the sample lands.
 
-Sampling: every ray's uniform variates (aim point, aperture point, wavelength) are a Latin
-hypercube per chunk, and an optional share of the aim points is concentrated on the rims
-(importance weights keep the estimate unbiased), which makes the refraction fringes cheap.
+Integration over the aperture, the spectrum and the aim point, two ways. "quadrature": equal-weight
+strata of the spectrum and the aperture, one jittered node each per batch, and a grid of aim
+points (denser, log-spaced, at every rim); a ray of each wavelength is traced once, along +z, and
+turned to every aperture point's angle (circles are unchanged by rotations about their centre);
+between neighbouring aim points the map to the detector is taken as linear, so each piece of the
+aim line spreads its flux evenly over the pixels it covers (no histogram noise). "monte_carlo":
+scrambled-Halton rays, a share aimed log-uniformly near the rims (importance weights keep the
+estimate unbiased), histogrammed; slower to converge, but it can follow random Fresnel branches.
 """
 
 from __future__ import annotations
