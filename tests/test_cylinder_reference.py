@@ -26,13 +26,15 @@ def _chord(r_um, b_um):
 
 
 def _analytic_attenuation(radii_um, mu_of_lambda, lam, weight, edges, distance_mm, aperture_mm, lever_m,
-                          centre_um=0.0):
-    """Bin average of <exp(-Σ mu_k (chord_k - chord_k+1))> over a square aperture and a tabulated
-    spectrum (trapezoid weights), rays straight from the aperture to the pixel: the limit SLD = 0."""
+                          centre_um=0.0, aperture="square"):
+    """Bin average of <exp(-Σ mu_k (chord_k - chord_k+1))> over the aperture (a disk: weights
+    sqrt(1 - (2x/D)²)) and a tabulated spectrum (trapezoid weights), rays straight from the
+    aperture to the pixel: the limit SLD = 0."""
     delta, lever = 1e3 * distance_mm, 1e6 * lever_m
     sub = 8
     x_det = (edges[:-1, None] + PIXEL_UM * (np.arange(sub) + 0.5)[None, :] / sub).ravel()
-    x_ap = 1e3 * aperture_mm * ((np.arange(200) + 0.5) / 200 - 0.5)
+    x_ap = 1e3 * aperture_mm * ((np.arange(400) + 0.5) / 400 - 0.5)
+    w_ap = np.ones(x_ap.size) if aperture == "square" else np.sqrt(1.0 - (2e-3 * x_ap / aperture_mm) ** 2)
     x_s = x_det[:, None] * (1 - delta / lever) + x_ap[None, :] * delta / lever - centre_um
     b = x_s * lever / np.hypot(lever, x_det[:, None] - x_ap[None, :])  # impact parameter
     chords = [_chord(r, b) for r in radii_um] + [0.0 * b]
@@ -41,27 +43,29 @@ def _analytic_attenuation(radii_um, mu_of_lambda, lam, weight, edges, distance_m
     T = np.zeros(x_det.size)
     for lam_i, p_i in zip(lam, p / p.sum()):
         att = sum(mu(lam_i) * 1e-6 * path for mu, path in zip(mu_of_lambda, paths))
-        T += p_i * np.exp(-att).mean(axis=1)
+        T += p_i * (np.exp(-att) @ w_ap) / w_ap.sum()
     return T.reshape(-1, sub).mean(axis=1)
 
 
 ROD3 = [ReferenceLayer(50.0, 0.0, 2000.0), ReferenceLayer(30.0, 0.0, 500.0, 100.0), ReferenceLayer(0.0, 0.0, 300.0)]
 
 
-@pytest.mark.parametrize("method", ["quadrature", "monte_carlo"])
-def test_mu_only_equals_analytic_chords(method):
+@pytest.mark.parametrize("method, aperture", [("quadrature", "square"), ("quadrature", "circular"),
+                                              ("monte_carlo", "square")])
+def test_mu_only_equals_analytic_chords(method, aperture):
     """SLD 0 everywhere: T = exp(-Σ mu_k chord_k) averaged over the source and the spectrum."""
     lam = np.linspace(2.0, 6.0, 41)
     weight = np.exp(-((lam - 4.0) ** 2))
     edges = _edges(-480.0, 480.0)
     kw = dict(outer_radius_um=300.0, centre_um=12.0, distance_mm=20.0, spectrum_lambda_A=lam,
-              spectrum_weight=weight, pixel_edges_um=edges, method=method, n_aperture=48, **BOA)
+              spectrum_weight=weight, pixel_edges_um=edges, method=method, n_aperture=48,
+              **(BOA | dict(aperture=aperture)))
     if method == "monte_carlo":
         kw.update(n_rays=400_000, n_batches=8)
     res = trace_cylinder_reference(ROD3, **kw)
     mus = [lambda l, s=s: s.mu_per_m + s.mu_per_m_per_A * l for s in ROD3]
     expected = _analytic_attenuation([300.0, 250.0, 220.0], mus, lam, weight, edges, 20.0, 40.0, 7.5,
-                                     centre_um=12.0)
+                                     centre_um=12.0, aperture=aperture)
     assert expected.min() < 0.65  # the shells and the core matter
     np.testing.assert_array_equal(res.T, res.T_att)  # no refraction without SLD
     if method == "quadrature":
@@ -72,14 +76,14 @@ def test_mu_only_equals_analytic_chords(method):
         assert np.mean(pull**2) < 2.0
 
 
-@pytest.mark.parametrize("method", ["quadrature", "monte_carlo"])
-def test_mu_zero_conserves_the_counts(method):
+@pytest.mark.parametrize("method, psf_fwhm_um", [("quadrature", 0.0), ("quadrature", 12.0), ("monte_carlo", 0.0)])
+def test_mu_zero_conserves_the_counts(method, psf_fwhm_um):
     """mu = 0: refraction and total reflection only move neutrons, so Σ (T - 1) over a window
     wider than everything they reach is 0, although T departs from 1 by percents."""
     shells = [ReferenceLayer(100.0, 4.0, 0.0), ReferenceLayer(0.0, 2.0, 0.0)]
     edges = _edges(-1200.0, 1200.0)
     kw = dict(outer_radius_um=400.0, distance_mm=30.0, pixel_edges_um=edges, method=method, n_aperture=32,
-              **BOA, **SPECTRUM)
+              psf_fwhm_um=psf_fwhm_um, **BOA, **SPECTRUM)
     if method == "monte_carlo":
         kw.update(n_rays=400_000, fresnel=True)
     res = trace_cylinder_reference(shells, **kw)

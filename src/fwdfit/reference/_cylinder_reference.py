@@ -444,7 +444,10 @@ def trace_cylinder_reference(
         n_batches: batches for the error estimate (>= 2; >= 5 recommended).
 
     Returns:
-        ReferenceResult with (n_pixel,) arrays T, T_err, T_att, T_att_err.
+        ReferenceResult with (n_pixel,) arrays T, T_err, T_att, T_att_err; ``n_rays`` the rays
+        traced (quadrature: each traced once along +z per wavelength, with and without
+        refraction, then turned to all n_aperture points), ``n_dropped`` those stopped after
+        _MAX_EVENTS crossings.
     """
     shells = list(shells)
     lam_tab, w_tab = np.asarray(spectrum_lambda_A, float), np.asarray(spectrum_weight, float)
