@@ -56,6 +56,7 @@ _PUBLIC = {
     "ReferenceLayer": "reference._reference",
     "trace_reference": "reference._reference",
     "trace_reference_rows": "reference._reference",
+    "trace_cylinder_reference": "reference._cylinder_reference",
     "Posterior": "inference._sample",
     "sample": "inference._sample",
     "DesignSpec": "scene._design_spec",
