@@ -12,7 +12,7 @@ Each plan is then measured: the independent ray tracer's profile at each distanc
 every draw fitted by ``fwdfit.Fitter`` from the truth. Reported: the predicted and the
 observed (RMS over draws, about the truth) error of the target, per plan.
 
-    python benchmarks/design_oxide.py [--draws N] [--rays R]
+    python benchmarks/design_oxide.py [--draws N] [--rays R] [--quick]
 
 Writes benchmarks/results/design_oxide.json.
 """
@@ -66,7 +66,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--draws", type=int, default=20)
     parser.add_argument("--rays", type=int, default=20_000_000)
+    parser.add_argument("--quick", action="store_true", help="3 draws, 2e6 rays, into results/quick/")
     args = parser.parse_args()
+    if args.quick:
+        args.draws, args.rays = 3, 2_000_000
     base = fwdfit.load_scene(SCENE)
     scene = dataclasses.replace(base, fit=fwdfit.FitSpec(VARY))
     start = time.perf_counter()
@@ -106,7 +109,7 @@ def main() -> None:
             "chi2_reduced_median": float(np.median(chi2))}
         print(name, record["plans"][name], flush=True)
     record["machine"] = machine_record()
-    out = results_dir(False) / "design_oxide.json"
+    out = results_dir(args.quick) / "design_oxide.json"
     out.write_text(json.dumps(record, indent=2) + "\n")
     print(f"wrote {out}")
 
