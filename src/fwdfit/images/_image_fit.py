@@ -15,8 +15,7 @@ A curved or drifting edge moves the stack's centre from row to row; everything e
 3. each row's centre (and the [fit] per_row parameters) with the shared values fixed: one
    compiled program (``Predictor``) for every row, Levenberg-Marquardt over all rows of a
    chunk at once (``levenberg_marquardt(..., independent=True)``);
-4. step 2 again with the fitted centres (no recompilation), then step 3 again (with an
-   image noise estimated from the data, the noise is first re-read from the rows' residuals);
+4. step 2 again with the fitted centres (no recompilation), then step 3 again;
 5. the edge's line: the weighted least-squares line through the rows' centres, its
    slope the in-plane rotation (``sample.rotation_deg``, when [fit] vary names it; else
    the scene's rotation, the line's centre alone fitted). With each row's centre free,
@@ -455,10 +454,9 @@ class _RowSolver:
         return rows
 
     def solve(self, base: np.ndarray, data: np.ndarray, sigma: np.ndarray, starts: np.ndarray):
-        """Per-row values (k, n_own), their errors (k, n_own), chi-square (k,), steps (k,),
-        converged (k,) and the noise of the residuals (k,) (neighbouring-pixel differences,
-        NaN: too few pixels) of the rows data (k, n) with errors sigma (k, n) (inf: masked),
-        from starts (k, n_own)."""
+        """Per-row values (k, n_own), their errors (k, n_own), chi-square (k,), steps (k,) and
+        converged (k,) of the rows data (k, n) with errors sigma (k, n) (inf: masked), from
+        starts (k, n_own)."""
         parameters = [self.free[j] for j in self.own]
         data = np.where(np.isfinite(sigma), data, 0.0)
 
@@ -477,9 +475,7 @@ class _RowSolver:
         curvature = np.einsum("kNi,kNj->kij", solution.jacobian, solution.jacobian)
         variance = np.diagonal(np.linalg.pinv(curvature, hermitian=True), axis1=1, axis2=2)
         errors = slope * np.sqrt(np.clip(variance, 0.0, None))
-        residual = np.where(np.isfinite(sigma), solution.residuals * sigma, np.nan)
-        noise = np.array([noise_sigma(r[np.isfinite(r)]) if np.isfinite(r).sum() > 2 else np.nan for r in residual])
-        return physical(solution.u), errors, solution.chi2, solution.steps, solution.converged, noise
+        return physical(solution.u), errors, solution.chi2, solution.steps, solution.converged
 
 
 def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int = _ROUNDS,
@@ -554,8 +550,7 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
         row_time = time.perf_counter() - row_begin
         values, errors = np.full((n_rows, n_own), np.nan), np.full((n_rows, n_own), np.nan)
         chi2, steps, converged = np.full(n_rows, np.nan), np.zeros(n_rows, int), np.zeros(n_rows, bool)
-        noise = np.full(n_rows, np.nan)
-        values[todo], errors[todo], chi2[todo], steps[todo], converged[todo], noise[todo] = out
+        values[todo], errors[todo], chi2[todo], steps[todo], converged[todo] = out
         if sigma_from_data:
             errors *= np.sqrt(chi2 / np.maximum(n_pixels - n_own, 1))[:, None]
         flags = flags & _UNFITTED
@@ -565,13 +560,6 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
         use, centres = flags == 0, values[:, 0]
         if not use.any():
             raise FwdfitError(f"{profile.image_file}: no row is fitted well (every row flagged)")
-        if sigma_from_data and round_ < rounds - 1:
-            # the noise read off neighbouring-pixel differences also holds the profile's own
-            # steps (refraction fringes): 5 % too high at 0.5 % noise on a 1 mm Al block, which
-            # the averaged rows' chi-square shows squared; the rows' residuals' differences
-            # give it without (and without this round's misfit, which their chi-square holds)
-            level = np.nanmedian(noise[use]) if np.isfinite(noise[use]).any() else 0.0
-            sigma = np.where(np.isfinite(sigma), level, np.inf) if level > 0 else sigma
     T_model, T_att = np.full(profile.image.shape, np.nan), np.full(profile.image.shape, np.nan)
     T_model[todo], T_att[todo] = rows.predict(rows.values(base, values[todo]))
     fitted = (flags & _UNFITTED) == 0
@@ -598,4 +586,4 @@ def _solve_rows(rows: _RowSolver, base, image, sigma, todo, starts, say, round_:
         rate = done / max(time.perf_counter() - begin, 1e-9)
         say(f"round {round_}: rows {done}/{len(todo)}, {rate:.1f} rows/s, "
             f"{(len(todo) - done) / rate:.0f} s left")
-    return tuple(np.concatenate([p[i] for p in parts]) for i in range(6))
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(5))
