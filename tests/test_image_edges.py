@@ -12,8 +12,10 @@ edges or refuses before any fit).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -218,3 +220,86 @@ def test_bad_regions_and_masks_are_refused(tmp_path, capsys, change, words):
     for word in words:
         assert word in err, err
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ rotation, reporting
+
+def test_a_rotated_edge_is_one_parameter(tmp_path, capsys):
+    """A straight edge rotated by 1° in the image plane (its centre moving 8.4 µm over 200
+    rows): ``sample.rotation_deg`` in [fit] vary is the line through the rows' centres,
+    recovered within 0.01°; rows.csv has each row's centre relative to it; result.json
+    and the console give the rows' centres' mean and spread and one chi-square over every
+    fitted row (rows.csv's chi2 summed)."""
+    n_rows, theta = 200, 1.0
+    line = 4.0 + np.tan(np.radians(theta)) * (np.arange(n_rows) - 0.5 * (n_rows - 1)) * 2.4
+    centres, T, _ = traced_image([fwdfit.ReferenceLayer(1000.0, SLD_AL, 1.4, 0.0)], line, x0_um=-600.0,
+                                 n_cols=500, n_rays=12_000_000)
+    image = T + 0.003 * np.random.default_rng(19).standard_normal(T.shape)
+    scene = _scene_file(tmp_path, image, x0=-600.0, vary=VARY + ("sample.rotation_deg",))
+    out = tmp_path / "out"
+    assert main(["fit-image", str(scene), "--out", str(out)]) == 0
+    console = capsys.readouterr().out
+    result = json.loads((out / "result.json").read_text())
+    rotation = result["parameters"]["sample.rotation_deg"]
+    assert abs(rotation["value"] - theta) < 0.01 and 0 < rotation["error"] < 0.01, rotation
+    assert result["edge_line"]["rotation_fitted"] and abs(result["edge_line"]["centre_um"] - 4.0) < 0.5
+    rows = read_table(out / "rows.csv")
+    assert np.sqrt(np.mean(rows["centre_from_line_um"] ** 2)) < 0.5
+    good = rows["flag"] == 0
+    centre = result["parameters"]["sample.centre_um"]
+    assert centre["value"] == pytest.approx(np.mean(rows["centre_um"][good]))
+    assert centre["spread"] == pytest.approx(np.std(rows["centre_um"][good])) and centre["spread"] > 2.0
+    assert result["centre_um"]["rows"] == good.sum()
+    assert result["chi2"] == pytest.approx(np.sum(rows["chi2"]))
+    assert result["chi2_reduced"] == pytest.approx(result["chi2"] / result["dof"])
+    assert "sample.rotation_deg" in console and "mean ± spread of" in console, console
+
+
+def test_rotation_belongs_to_image_fits(tmp_path):
+    """The scene key round-trips; a profile fit refuses to vary it (a profile has no rows);
+    fit-image refuses it per row."""
+    from helpers import small_scene
+
+    scene = small_scene({"sample.centre_um": 0.0, "layers.Al.thickness_um": 1000.0,
+                         "layers.Al.sld_e6_per_A2": 2.0}, vary=("sample.rotation_deg",))
+    scene = dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, rotation_deg=0.3))
+    text = fwdfit.dump_scene(scene)
+    assert "rotation_deg = 0.3" in text
+    path = fwdfit.save_scene(scene, tmp_path / "scene.toml")
+    assert fwdfit.load_scene(path).sample.rotation_deg == 0.3
+    with pytest.raises(fwdfit.FwdfitError, match="only fwdfit fit-image fits it"):
+        fwdfit.Fitter(fwdfit.load_scene(path))
+    image = tmp_path / "T.tif"
+    tifffile.imwrite(image, np.ones((4, 20), np.float32))
+    per_row = image_scene(image, thickness_um=1000.0, x0_um=-24.0, n_cols=20, per_row=("sample.rotation_deg",))
+    with pytest.raises(fwdfit.FwdfitError, match="one for the image"):
+        fwdfit.fit_image(fwdfit.load_scene(fwdfit.save_scene(per_row, tmp_path / "rows.toml")))
+
+
+@pytest.mark.parametrize("with_errors", [True, False])
+def test_the_shared_stage_chi2_is_near_one_when_the_errors_are_right(tmp_path, with_errors):
+    """Rows that are independent (the model's own image of the weak block, 2 % noise; the
+    tracer's rows share one trace, whose noise the averaged rows do not average away):
+    the averaged rows' chi2/dof is near 1, with the error image given and with the noise
+    read off the image, and so is every row's."""
+    fitted = _model_image(str(tmp_path.parent / "model"))
+    image = fitted + 0.02 * np.random.default_rng(20).standard_normal(fitted.shape)
+    tifffile.imwrite(tmp_path / "T.tif", image.astype(np.float32))
+    tifffile.imwrite(tmp_path / "T_err.tif", np.full(image.shape, 0.02, np.float32))
+    scene = image_scene(tmp_path / "T.tif", thickness_um=1080.0, x0_um=-600.0, n_cols=500, vary=VARY,
+                        image_err_file=tmp_path / "T_err.tif" if with_errors else None,
+                        layers=(fwdfit.Layer("Al", 1080.0, SLD_AL, 3.0, 0.0),))
+    result = fwdfit.fit_image(fwdfit.load_scene(fwdfit.save_scene(scene, tmp_path / "scene.toml")))
+    assert 0.9 < result.shared_chi2_reduced < 1.12, result.shared_chi2_reduced
+    assert 0.97 < result.chi2_reduced < 1.03, result.chi2_reduced
+    assert abs(result.shared["layers.Al.thickness_um"][0] - 1000.0) < 3 * result.shared["layers.Al.thickness_um"][1] + 2
+
+
+@functools.cache
+def _model_image(folder: str) -> np.ndarray:
+    """The model's image (T_model) of a fit of the weak block's 40 rows."""
+    folder = Path(folder)
+    folder.mkdir(exist_ok=True)
+    _, T, _ = _block(1.4, 0.0, n_rows=40, n_rays=4_000_000, phase=1.0)
+    scene = _scene_file(folder, T + 0.005 * np.random.default_rng(14).standard_normal(T.shape), x0=-600.0)
+    return fwdfit.fit_image(scene).T_model

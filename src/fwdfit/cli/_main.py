@@ -173,7 +173,7 @@ def _run_fit_image(args) -> int:
         result = fit_image(scene, accuracy=args.accuracy, progress=args.say)
     write_image_fit(result, Path(args.out))
     shared = result.shared
-    print(shared.table())
+    print(result.table())
     print(f"{result.summary()}; compile {result.compile_time_s:.1f} s, fit {result.wall_time_s:.1f} s; "
           f"wrote {args.out}")
     for note in shared.warnings:

@@ -15,7 +15,12 @@ A curved or drifting edge moves the stack's centre from row to row; everything e
 3. each row's centre (and the [fit] per_row parameters) with the shared values fixed: one
    compiled program (``Predictor``) for every row, Levenberg-Marquardt over all rows of a
    chunk at once (``levenberg_marquardt(..., independent=True)``);
-4. step 2 again with the fitted centres (no recompilation), then step 3 again.
+4. step 2 again with the fitted centres (no recompilation), then step 3 again;
+5. the edge's line: the weighted least-squares line through the rows' centres, its
+   slope the in-plane rotation (``sample.rotation_deg``, when [fit] vary names it; else
+   the scene's rotation, the line's centre alone fitted). With each row's centre free,
+   this is the joint fit of rotation and rows to first order (the rows are independent);
+   what the line leaves is each row's own centre relative to it (a curved edge).
 
 T_att of a row is the model's attenuation-only profile at that row's centre, and
 T_corrected = T - (T_model - T_att), as in the profile fit. Units: µm, as the scene keys.
@@ -24,6 +29,7 @@ T_corrected = T - (T_model - T_att), as in the profile fit. Units: µm, as the s
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import numpy as np
@@ -40,6 +46,7 @@ from ..inference._starts import noise_sigma
 from ._edges import Faces, check_determined, find_faces, in_view
 
 CENTRE = "sample.centre_um"
+ROTATION = "sample.rotation_deg"
 _BINS = 4  # sub-pixel offset bins of the averaged profiles (a quarter pixel each)
 _MAX_MASKED = 0.5  # a row with more of its pixels masked is not fitted
 _WIDTH_TOLERANCE = 0.1  # a row whose edges are this much (relative) off the median width has no edge
@@ -51,6 +58,7 @@ _TYPICAL_STEPS = 5.0  # largest solver step of a per-row value, in its typical s
 _POOR_LIMIT = 2.0  # a row's fit is poor when chi2/pixel exceeds this ...
 _POOR_SIGNIFICANCE = 5.0  # ... by this many standard deviations of chi-square
 _MAX_POOR_ROWS = 0.05  # the image rejects the fit when more of the fitted rows fit poorly
+_NO_WEIGHT = 1e5  # an averaged profile's pixel with a larger T_err holds no data (no row covers it)
 
 # rows.csv flags (sums of): the row was not fitted, or its fit is not to be trusted
 FLAG_NO_EDGE = 1
@@ -58,6 +66,53 @@ FLAG_MASKED = 2
 FLAG_POOR_FIT = 4
 FLAG_NOT_CONVERGED = 8
 _UNFITTED = FLAG_NO_EDGE | FLAG_MASKED
+
+
+@dataclasses.dataclass(frozen=True)
+class EdgeLine:
+    """The straight line through the fitted rows' centres: its centre ``centre_um`` at the
+    middle profile, its rotation (deg; centre in profile r moved by tan(rotation) *
+    (r - middle) * pixel_um), their errors (inflated by sqrt(chi2/dof) of the rows about
+    the line where that exceeds 1: a curved edge), whether the rotation was fitted, and
+    ``deviation_um`` (rows,): each row's centre less the line's there (NaN: not fitted)."""
+
+    centre_um: float
+    centre_err_um: float
+    rotation_deg: float
+    rotation_err_deg: float
+    rotation_fitted: bool
+    deviation_um: np.ndarray
+    chi2_reduced: float  # of the rows' centres about the line
+
+
+def edge_line(centres_um: np.ndarray, errors_um: np.ndarray, use: np.ndarray, pixel_um: float,
+              rotation_deg: float, fit_rotation: bool, where: str = "image") -> EdgeLine:
+    """The line through the centres (rows,) µm with errors (rows,) of the rows ``use``: weighted
+    least squares of centre against (r - middle) * pixel_um; the slope fixed at
+    tan(rotation_deg) unless ``fit_rotation``."""
+    n = len(centres_um)
+    along = (np.arange(n) - 0.5 * (n - 1)) * pixel_um
+    rows = use & np.isfinite(centres_um) & np.isfinite(errors_um) & (errors_um > 0)
+    if fit_rotation and rows.sum() < 3:
+        raise FwdfitError(f"{where}: {ROTATION}: {int(rows.sum())} fitted rows, too few for the edge's line "
+                          "(at least 3)")
+    if not rows.any():
+        return EdgeLine(math.nan, math.nan, rotation_deg, math.nan, fit_rotation, np.full(n, np.nan), math.nan)
+    w, c, x = 1.0 / errors_um[rows] ** 2, centres_um[rows], along[rows]
+    design = np.stack([np.ones_like(x), x], axis=1) if fit_rotation else np.ones((len(x), 1))
+    target = c if fit_rotation else c - math.tan(math.radians(rotation_deg)) * x
+    covariance = np.linalg.inv(design.T @ (w[:, None] * design))
+    beta = covariance @ (design.T @ (w * target))
+    dof = max(int(rows.sum()) - design.shape[1], 1)
+    chi2 = float(np.sum(w * (target - design @ beta) ** 2)) / dof
+    scale = math.sqrt(max(chi2, 1.0))
+    slope = float(beta[1]) if fit_rotation else math.tan(math.radians(rotation_deg))
+    angle = math.degrees(math.atan(slope)) if fit_rotation else rotation_deg
+    angle_err = (math.degrees(scale * math.sqrt(covariance[1, 1]) / (1.0 + slope ** 2)) if fit_rotation
+                 else 0.0)
+    deviation = np.where(use, centres_um - (beta[0] + slope * along), np.nan)
+    return EdgeLine(float(beta[0]), scale * math.sqrt(covariance[0, 0]), angle, angle_err, fit_rotation,
+                    deviation, chi2)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +146,8 @@ class ImageFit:
     row_time_s: float  # the per-row fits of the last round alone
     rounds: int
     layout: ImageLayout | None = None  # where the rows lie in the image file (None: the whole file, by rows)
+    line: EdgeLine | None = None  # the straight line through the rows' centres (rotation_deg)
+    shared_dof: int = 0  # the shared fit's pixels that hold data, less its free parameters
 
     @property
     def centre_um(self) -> np.ndarray:
@@ -109,11 +166,41 @@ class ImageFit:
         return self.flags == 0
 
     @property
+    def chi2_total(self) -> float:
+        """Chi-square summed over every fitted row."""
+        return float(self.chi2[self.fitted].sum())
+
+    @property
+    def dof(self) -> int:
+        """Fitted pixels of every fitted row, less the per-row and shared parameters."""
+        rows = self.fitted
+        return int(self.n_pixels[rows].sum()) - int(rows.sum()) * len(self.per_row) - len(self.shared.names)
+
+    @property
     def chi2_reduced(self) -> float:
         """Over every fitted row: chi-square per degree of freedom."""
-        rows = self.fitted
-        dof = int(self.n_pixels[rows].sum()) - int(rows.sum()) * len(self.per_row) - len(self.shared.names)
-        return float(self.chi2[rows].sum()) / max(dof, 1)
+        return self.chi2_total / max(self.dof, 1)
+
+    @property
+    def shared_chi2_reduced(self) -> float:
+        """The shared fit's chi-square per degree of freedom, over the averaged profiles'
+        pixels that hold data (pixels no row covers, and bins whose rows were all left out,
+        stay in the profiles with no weight; they are no degrees of freedom)."""
+        return self.shared.chi2 / max(self.shared_dof, 1)
+
+    @property
+    def centre_rows(self) -> np.ndarray:
+        """The rows the centre's mean and spread are taken over: those fitted well, else every fitted one."""
+        return self.good if self.good.any() else self.fitted
+
+    @property
+    def centre_mean_um(self) -> float:
+        return float(np.mean(self.centre_um[self.centre_rows]))
+
+    @property
+    def centre_spread_um(self) -> float:
+        """The standard deviation of the rows' centres (an edge's curvature and rotation, and noise)."""
+        return float(np.std(self.centre_um[self.centre_rows]))
 
     @property
     def accepted(self) -> bool:
@@ -132,6 +219,23 @@ class ImageFit:
         return (f"{self.name}: {int(self.fitted.sum())} of {len(self.flags)} rows fitted, {flagged} flagged; "
                 f"{self.n_masked} masked pixels; chi2/dof {self.chi2_reduced:.4g}; "
                 f"rows {self.rows_per_s:.1f}/s")
+
+    def table(self) -> str:
+        """The parameter table as text: the shared values (from the averaged rows), the rows'
+        centre (mean ± spread), the edge's rotation, and one chi-square over every fitted row."""
+        entries = [(n, f"{v:>14.6g} ± {e:<10.3g}") for n, v, e in zip(self.shared.names, self.shared.values,
+                                                                        self.shared.errors) if n != CENTRE]
+        entries.append((CENTRE, f"{self.centre_mean_um:>14.6g} ± {self.centre_spread_um:<10.3g}"
+                                f"(mean ± spread of {int(self.centre_rows.sum())} rows)"))
+        if self.line is not None and self.line.rotation_fitted:
+            entries.append((ROTATION, f"{self.line.rotation_deg:>14.6g} ± {self.line.rotation_err_deg:<10.3g}"
+                                      f"(the line through the rows' centres)"))
+        width = max(len(n) for n, _ in entries)
+        lines = [f"{n:<{width}}  {text}".rstrip() for n, text in entries]
+        lines.append(f"chi2_reduced = {self.chi2_reduced:.4g} (dof {self.dof}) over {int(self.fitted.sum())} "
+                     f"fitted rows; shared fit of the averaged rows {self.shared_chi2_reduced:.4g} "
+                     f"(dof {self.shared_dof}), converged {self.shared.converged}")
+        return "\n".join(lines)
 
 
 def _image_profile(scene: Scene) -> Profile:
@@ -153,11 +257,21 @@ class _Names:
     per_row: tuple[str, ...]
     bounds_shared: dict
     bounds_rows: dict
+    rotation: bool = False  # sample.rotation_deg in [fit] vary: the line through the rows' centres
 
 
 def _names(scene: Scene, profile: Profile) -> _Names:
-    """[fit] vary and per_row split into the shared and the per-row fits' parameters."""
+    """[fit] vary and per_row split into the shared and the per-row fits' parameters
+    (``sample.rotation_deg`` is neither: the line through the rows' centres)."""
     vary, per_row = tuple(scene.fit.vary), tuple(scene.fit.per_row)
+    rotation = ROTATION in vary
+    if ROTATION in per_row:
+        raise FwdfitError(f"{scene.path}: fit.per_row: {ROTATION!r} is the edge's, one for the image "
+                          "(name it in fit.vary)")
+    if ROTATION in scene.fit.bounds:
+        raise FwdfitError(f"{scene.path}: fit.bounds.{ROTATION}: the rotation is the line through the rows' "
+                          "centres, which takes no bounds")
+    vary = tuple(n for n in vary if n != ROTATION)
 
     def key(name):  # a profile key of the image ("profiles.NAME.norm", "profiles.*.norm"), else None
         parts = name.split(".")
@@ -179,7 +293,7 @@ def _names(scene: Scene, profile: Profile) -> _Names:
     per_row = tuple(f"profiles.{profile.name}.{key(n)}" if key(n) else n for n in per_row)
     rename = lambda bounds, form: {(form.format(key(n)) if key(n) else n): b for n, b in bounds.items()}  # noqa: E731
     names = _Names(shared, rows, per_row, rename(scene.fit.bounds, "profiles.*.{}"),
-                   rename(scene.fit.bounds, f"profiles.{profile.name}.{{}}"))
+                   rename(scene.fit.bounds, f"profiles.{profile.name}.{{}}"), rotation)
     free_parameters(scene, vary=names.rows, bounds=names.bounds_rows)  # every name and bound exists
     return names
 
@@ -296,7 +410,7 @@ class _Binning:
             # a bin whose rows were all left out this round holds no weight at all
             mean = np.where(covered, (weight[taken] * data[taken]).sum(axis=0) / np.where(covered, total, 1), np.nan)
             T = _filled(mean) if covered.any() else np.ones(len(columns))
-            T_err = np.where(covered, 1.0 / np.sqrt(np.where(covered, total, 1)), 1e6)
+            T_err = np.where(covered, 1.0 / np.sqrt(np.where(covered, total, 1)), 2 * _NO_WEIGHT)
             profiles.append(dataclasses.replace(
                 profile, name=f"{profile.name}.bin{k}", x_um=profile.x_um[columns], T=T, T_err=T_err,
                 shift_um=profile.shift_um + self.bin_offset_px(k) * pixel_um, image=None, image_err=None))
@@ -402,6 +516,7 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     compile_time, row_time = faces.compile_time_s, 0.0
     for round_ in range(rounds):
         profiles = binning.profiles(profile, centres, use, sigma, pixel)
+        weighted = sum(int(np.count_nonzero(p.T_err < _NO_WEIGHT)) for p in profiles)
         if fitter is None:
             say(f"compiling the model for {len(profiles)} averaged profiles, then for one row "
                 "(seconds each once cached)")
@@ -413,9 +528,13 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
             compile_time += fitter.compile_time_s
             shared = fitter()
         else:
+            # the global scan again (the last values one more candidate): the first round's
+            # bins, from the edges' centres, can hold it in a wrong minimum (2 % noise: 17 µm
+            # too thick), the fitted centres' bins not
             shared = fitter(T=[p.T for p in profiles], T_err=[p.T_err for p in profiles], start=shared.values)
+        shared_dof = weighted - len(shared.names)
         say(f"round {round_ + 1}: shared fit of {int(use.sum())} rows in {len(profiles)} averaged profiles, "
-            f"chi2/dof {shared.chi2_reduced:.4g}")
+            f"chi2/dof {shared.chi2 / max(shared_dof, 1):.4g}")
         if rows is None:
             with say.ticking("compiling the per-row model"):
                 rows = _RowSolver(scene, profile, shared, fitter, names, accuracy)
@@ -445,10 +564,13 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     T_model[todo], T_att[todo] = rows.predict(rows.values(base, values[todo]))
     fitted = (flags & _UNFITTED) == 0
     T_corrected = np.where(fitted[:, None], profile.image - (T_model - T_att), profile.image)
+    line = edge_line(values[:, 0], errors[:, 0], flags == 0, pixel, scene.sample.rotation_deg, names.rotation,
+                     str(profile.image_file))
     wall = time.perf_counter() - begin - compile_time
     result = ImageFit(profile.name, profile.x_um, shared, names.per_row, values, errors, edges, chi2, n_pixels,
                       steps, flags, profile.image, sigma, T_model, T_att, T_corrected, sigma_from_data,
-                      int(masked.sum()), compile_time, wall, row_time, rounds, profile.image_layout)
+                      int(masked.sum()), compile_time, wall, row_time, rounds, profile.image_layout, line,
+                      shared_dof)
     say(result.summary())
     return result
 

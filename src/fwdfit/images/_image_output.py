@@ -10,7 +10,7 @@ import numpy as np
 
 from .._errors import FwdfitError
 from ..outputs._fit_output import result_dict, spectrum_label
-from ._image_fit import (FLAG_MASKED, FLAG_NO_EDGE, FLAG_NOT_CONVERGED, FLAG_POOR_FIT, ImageFit)
+from ._image_fit import (CENTRE, FLAG_MASKED, FLAG_NO_EDGE, FLAG_NOT_CONVERGED, FLAG_POOR_FIT, ROTATION, ImageFit)
 from ..io._tables import staged_folder, write_columns
 
 FLAG_NAMES = {FLAG_NO_EDGE: "no_edge", FLAG_MASKED: "masked", FLAG_POOR_FIT: "poor_fit",
@@ -19,14 +19,36 @@ FLAG_NAMES = {FLAG_NO_EDGE: "no_edge", FLAG_MASKED: "masked", FLAG_POOR_FIT: "po
 
 def image_result_dict(result: ImageFit) -> dict:
     """result.json: the shared parameters (as ``fwdfit fit`` writes them, from the fit of the
-    averaged rows), chi-square over every fitted row, the rows' flags, masked pixels, timings."""
+    averaged rows), except the centre: the rows' centres' mean (its error: the spread over
+    sqrt(rows)) and spread; the edge's line and rotation; one chi-square over every fitted
+    row (the shared fit's beside it); the rows' flags, masked pixels, timings."""
     summary = result_dict(result.shared)
-    summary["shared_fit_chi2_reduced"] = summary.pop("chi2_reduced")
-    for key in ("chi2", "dof", "chi2_per_start"):
+    for key in ("chi2", "dof", "chi2_reduced", "chi2_per_start"):
         summary.pop(key)
+    n_centres = int(result.centre_rows.sum())
+    summary["parameters"][CENTRE] = {
+        "value": result.centre_mean_um, "error": result.centre_spread_um / np.sqrt(max(n_centres, 1)),
+        "unit": "um", "spread": result.centre_spread_um, "rows": n_centres,
+        "note": "the mean and spread of the rows' centres (rows.csv), not the averaged rows' centre"}
+    line = result.line
+    if line is not None and line.rotation_fitted:
+        summary["parameters"][ROTATION] = {"value": line.rotation_deg, "error": line.rotation_err_deg, "unit": "deg"}
     counts = {name: int(np.count_nonzero(result.flags & flag)) for flag, name in FLAG_NAMES.items()}
     summary.update({
+        "chi2": result.chi2_total,
+        "dof": result.dof,
         "chi2_reduced": result.chi2_reduced,
+        "shared_fit": {"chi2": result.shared.chi2, "dof": result.shared_dof,
+                       "chi2_reduced": result.shared_chi2_reduced,
+                       "note": "the fit of the averaged rows that gives the shared values"},
+        "centre_um": {"mean": result.centre_mean_um, "spread": result.centre_spread_um,
+                      "min": float(np.min(result.centre_um[result.centre_rows])),
+                      "max": float(np.max(result.centre_um[result.centre_rows])), "rows": n_centres},
+        "edge_line": None if line is None else {
+            "centre_um": line.centre_um, "centre_err_um": line.centre_err_um, "rotation_deg": line.rotation_deg,
+            "rotation_err_deg": line.rotation_err_deg, "rotation_fitted": line.rotation_fitted,
+            "chi2_reduced": line.chi2_reduced,
+            "deviation_rms_um": float(np.sqrt(np.nanmean(line.deviation_um ** 2)))},
         "accepted": result.accepted,
         "rows": {"total": len(result.flags), "fitted": int(result.fitted.sum()),
                  "flagged": int(np.count_nonzero(result.flags)), "flags": counts},
@@ -83,6 +105,11 @@ def plot_overview(path: Path, result: ImageFit):
     rows = np.arange(len(result.flags))
     ax.errorbar(rows, result.centre_um, result.centre_err_um, fmt=".", ms=3, color="C0", label="fitted centre")
     ax.plot(rows, result.edge_centre_um, "-", lw=0.8, color="0.6", label="from the edges (start)")
+    line = result.line
+    if line is not None and np.isfinite(line.centre_um):
+        along = (rows - 0.5 * (len(rows) - 1)) * (result.x_um[1] - result.x_um[0])
+        ax.plot(rows, line.centre_um + np.tan(np.radians(line.rotation_deg)) * along, "--", lw=0.8, color="C2",
+                label=f"line, rotation {line.rotation_deg:.4g}°")
     flagged = result.flags != 0
     ax.plot(rows[flagged], np.where(np.isfinite(result.centre_um), result.centre_um,
                                     np.nanmedian(result.centre_um))[flagged], "x", color="C3", label="flagged")
@@ -121,6 +148,8 @@ def write_image_fit(result: ImageFit, out_dir: Path) -> None:
     for i, name in enumerate(result.per_row):
         columns[_column(name)] = result.row_values[:, i]
         columns[_column(name) + "_err"] = result.row_errors[:, i]
+    if result.line is not None:
+        columns["centre_from_line_um"] = result.line.deviation_um
     columns.update({"edge_centre_um": result.edge_centre_um, "chi2": result.chi2, "n_pixels": result.n_pixels,
                     "chi2_reduced": result.chi2 / np.maximum(result.n_pixels - len(result.per_row), 1),
                     "steps": result.steps, "flag": result.flags})

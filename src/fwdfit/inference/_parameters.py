@@ -153,6 +153,9 @@ def free_parameters(scene: Scene, vary=None, bounds=None) -> tuple[FreeParameter
         for canonical, key, target, default, step in _resolve(scene, entry):
             if canonical in seen:
                 continue
+            if registry.BY_KEY[key].model == "image":  # fit-image takes it out of vary before this
+                raise FwdfitError(f"{scene.path}: fit.vary: {entry!r}: only fwdfit fit-image fits it "
+                                  "(a quantity of an image's rows, which a profile does not have)")
             seen.add(canonical)
             given = entry in bounds or canonical in bounds
             low, high = bounds.get(entry, bounds.get(canonical, default))

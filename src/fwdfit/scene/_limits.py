@@ -29,6 +29,7 @@ DOMAIN: dict[str, tuple[float, float]] = {
     "tilt_deg": (-MAX_TILT_DEG, MAX_TILT_DEG),
     "centre_um": (-1e5, 1e5),
     "drift_um_per_mm": (-100.0, 100.0),
+    "rotation_deg": (-20.0, 20.0),  # an image edge's in-plane rotation; rows stay cuts across it
     "thickness_um": (0.0, 1e5),
     "density_g_cm3": (1e-4, 30.0),
     "density_scale": (0.01, 100.0),

@@ -21,6 +21,9 @@ DEFAULT_TILT_BOUND_DEG = 1.0
 # RMS slope of an interface's local normal (mrad): the default upper bound of a free
 # roughness (rough faces' kernel windows grow with it).
 MAX_ROUGHNESS_MRAD = 5.0
+# In-plane rotation of an image's edge (deg): rows are cuts across the edge, so a row
+# crosses the layers 1/cos(rotation) wider (1.5e-4 at 1 deg), which the fit does not undo.
+DEFAULT_ROTATION_BOUND_DEG = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,8 +34,9 @@ class Quantity:
     holds it (``Sample``, ``Layer``, ``Profile``) and the first word of its ``vary`` name.
     default: its value when the scene leaves it out (None: the scene must give it, or a
     fit that varies it estimates it from the data when ``from_data``). model:
-    ``"params"``, a ``ModelParams`` field of the same name, or ``"assembler"``, applied
-    by the assembler (profile shifts, normalisation, background). positive: the scene
+    ``"params"``, a ``ModelParams`` field of the same name, ``"assembler"``, applied
+    by the assembler (profile shifts, normalisation, background), or ``"image"``, a
+    quantity of an image's rows that no profile model sees (fit-image alone fits it). positive: the scene
     value must be > 0. material: a constant a layer's material gives (the reader and
     writer treat it with the material); the others, neither ``from_data`` nor
     ``material``, the reader reads as they are. uniform_from: a layer's value at its
@@ -60,6 +64,8 @@ QUANTITIES = (
     Quantity("sample", "depth_mm", "mm", None, (0.0, _INF), 0.01, positive=True),
     Quantity("sample", "left_roughness_mrad", "mrad", 0.0, (0.0, MAX_ROUGHNESS_MRAD), 0.1),
     Quantity("sample", "drift_um_per_mm", "um/mm", 0.0, (-_INF, _INF), 0.01, model="assembler"),
+    Quantity("sample", "rotation_deg", "deg", 0.0, (-DEFAULT_ROTATION_BOUND_DEG, DEFAULT_ROTATION_BOUND_DEG), 0.001,
+             model="image"),
     Quantity("layers", "thickness_um", "um", None, (0.0, _INF), 1.0, from_data=True),
     Quantity("layers", "sld_e6_per_A2", "1e-6/A^2", None, (0.0, _INF), 0.1, from_data=True, material=True,
              signed_by_start=True),

@@ -76,7 +76,9 @@ class Layer:
 class Sample:
     """The layer stack; ``drift_um_per_mm`` shifts each profile by drift * distance_mm
     (a stage or beam-axis misalignment); ``left_roughness_mrad`` is the RMS normal slope of
-    the stack's first (left, vacuum | first layer) face, each layer's own is its right-hand face."""
+    the stack's first (left, vacuum | first layer) face, each layer's own is its right-hand face.
+    ``rotation_deg``: an image's edge rotated in the image plane, its centre in profile r
+    moved by tan(rotation) * (r - centre profile) * pixel_um (fit-image only)."""
 
     depth_mm: float
     tilt_deg: float
@@ -84,6 +86,7 @@ class Sample:
     layers: tuple[Layer, ...]
     drift_um_per_mm: float = 0.0
     left_roughness_mrad: float = 0.0
+    rotation_deg: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
