@@ -255,3 +255,22 @@ def test_help_texts_read_as_written(command, capsys):
     assert "%%" not in text
     if command in ("simulate", "fit"):
         assert "FWDFIT_CACHE_DIR" in text and "~/.cache/fwdfit" in text
+
+
+def test_programs_served_by_jax_cache_are_not_stored_broken(tmp_path):
+    """A new fwdfit source (its own program store empty) whose programs JAX's persistent cache
+    still holds: the first run takes them from JAX's cache; the next runs still work. Before,
+    such a program was re-serialized without its kernels, and the third run of the image
+    example ended in 'JaxRuntimeError: Function ... not found'."""
+    env = {**os.environ, "FWDFIT_CACHE_DIR": str(tmp_path / "cache")}
+    scene = Path(__file__).parents[1] / "examples" / "images" / "scene.toml"
+
+    def run(out):
+        return subprocess.run([sys.executable, "-m", "fwdfit", "fit-image", str(scene), "--out", str(tmp_path / out),
+                               "--quiet"], env=env, capture_output=True, text=True)
+
+    assert run("first").returncode == 0
+    shutil.rmtree(tmp_path / "cache" / "fwdfit-programs")  # as a changed source digest leaves it
+    for out in ("second", "third"):
+        done = run(out)
+        assert done.returncode == 0 and "not found" not in done.stderr, done.stderr[-2000:]

@@ -206,11 +206,22 @@ def _host_cpu() -> str:
         return platform.processor()
 
 
+_PERSISTENT_CACHE_HITS = [0]  # programs JAX's persistent cache has served in this process
+
+
+def _count_cache_hit(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _PERSISTENT_CACHE_HITS[0] += 1
+
+
+jax.monitoring.register_event_listener(_count_cache_hit)
+
+
 def _stored(key: str, in_tree, out_tree, compile_here):
     """(program, "loaded" or "compiled"): the compiled program ``key`` (from ``_program_key``)
     from the cache folder, else ``compile_here()``, stored there for the next run. A stored executable loads in ~0.1 s
     (JAX's persistent cache takes ~0.2 s, since it must lower the program to find it);
-    without the cache folder nothing is stored."""
+    without the cache folder nothing is stored, nor is a program JAX's cache served."""
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
         return compile_here(), "compiled"
@@ -219,7 +230,13 @@ def _stored(key: str, in_tree, out_tree, compile_here):
         return serialize_executable.deserialize_and_load(path.read_bytes(), in_tree, out_tree), "loaded"
     except Exception:  # noqa: BLE001 - none yet, or from another jaxlib, or damaged: compile anew
         pass
+    hits_before = _PERSISTENT_CACHE_HITS[0]
     compiled = compile_here()
+    if _PERSISTENT_CACHE_HITS[0] != hits_before:
+        # served by JAX's persistent cache (a program an earlier fwdfit source compiled): such
+        # an executable serializes without its kernels ("Function ... not found" when the next
+        # run loads it), so it is not stored; JAX's cache serves it next time too
+        return compiled, "loaded"
     try:
         serialized, _, _ = serialize_executable.serialize(compiled)
         path.parent.mkdir(parents=True, exist_ok=True)
