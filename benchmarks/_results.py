@@ -41,3 +41,11 @@ def run_command(scene: Path, out: Path, cache: Path) -> dict:
             "solve_s": round(result["solve_time_s"], 2), "chi2": result["chi2"],
             "chi2_reduced": round(result["chi2_reduced"], 4), "accepted": result["accepted"],
             "values": {k: v["value"] for k, v in result["parameters"].items()}}
+
+
+def write_result(name: str, record: dict, quick: bool) -> Path:
+    """Write ``record`` as ``<results>/<name>.json`` (``results_dir``) and say where."""
+    path = results_dir(quick) / f"{name}.json"
+    path.write_text(json.dumps(record, indent=2) + "\n")
+    print(f"wrote {path}")
+    return path

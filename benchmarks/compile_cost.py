@@ -14,7 +14,6 @@ Writes benchmarks/results/compile_cost.json. Run on idle cores: compile times sc
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
 from fwdfit.inference import assembler, free_parameters, geometry_of  # noqa: E402
-from _results import machine_record, results_dir  # noqa: E402
+from _results import machine_record, write_result  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "al_block" / "scene.toml"
 REPEATS = 20
@@ -87,10 +86,8 @@ def main() -> None:
     total["jacobian_eval_in_forward_evaluations"] = round(total["jacobian_eval_ms"] / total["eval_ms"], 1)
     record = {"scene": "examples/al_block", "n_free": len(free), "groups": groups, "total": total,
               "machine": machine_record()}
-    out = results_dir(quick) / "compile_cost.json"
-    out.write_text(json.dumps(record, indent=2) + "\n")
+    write_result("compile_cost", record, quick)
     print(total)
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -32,7 +31,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
-from _results import machine_record, results_dir  # noqa: E402
+from _results import machine_record, write_result  # noqa: E402
 
 SCENE = Path(__file__).resolve().parents[1] / "tests" / "data" / "raytrace" / "oxide5_boa" / "scene.toml"
 TARGET = "layers.oxide1_left.thickness_um"
@@ -109,9 +108,7 @@ def main() -> None:
             "chi2_reduced_median": float(np.median(chi2))}
         print(name, record["plans"][name], flush=True)
     record["machine"] = machine_record()
-    out = results_dir(args.quick) / "design_oxide.json"
-    out.write_text(json.dumps(record, indent=2) + "\n")
-    print(f"wrote {out}")
+    write_result("design_oxide", record, args.quick)
 
 
 if __name__ == "__main__":

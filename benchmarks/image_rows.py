@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 import tifffile  # noqa: E402
 
 import fwdfit  # noqa: E402
-from _results import machine_record, results_dir  # noqa: E402
+from _results import machine_record, write_result  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from helpers import gaussian_line_table, image_scene  # noqa: E402
@@ -128,10 +128,8 @@ def main() -> None:
         "load_average_1min": [load_before, os.getloadavg()[0]],  # other jobs slow every figure down
         "machine": machine_record(),
     }
-    path = results_dir(args.quick) / "image_rows.json"
-    path.write_text(json.dumps(record, indent=2) + "\n")
     print(json.dumps(record, indent=2))
-    print(f"wrote {path}")
+    write_result("image_rows", record, args.quick)
 
 
 if __name__ == "__main__":

@@ -143,7 +143,7 @@ def main() -> None:
     if args.child:
         child(*args.child)
         return
-    from _results import machine_record, results_dir
+    from _results import machine_record, write_result
 
     rows, big = (100, 512) if args.quick else (args.rows, args.big)
     load = [os.getloadavg()[0]]
@@ -161,10 +161,8 @@ def main() -> None:
             load.append(os.getloadavg()[0])
     record["load_average_1min"] = load  # before, after the 750-pixel runs, after the big one
     record["machine"] = machine_record()
-    path = results_dir(args.quick) / "image_throughput.json"
-    path.write_text(json.dumps(record, indent=2) + "\n")
     print(json.dumps(record, indent=2))
-    print(f"wrote {path}")
+    write_result("image_throughput", record, args.quick)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._errors import FwdfitError
-from ._reference import ReferenceLayer, ReferenceResult, _sample_aperture, _sample_spectrum
+from ._reference import (ReferenceLayer, ReferenceResult, _sample_aperture, _sample_spectrum,
+                         check_pixels_and_spectrum)
 
 _MAX_EVENTS = 200  # circle crossings and reflections per ray before it is dropped
 _CHUNK = 400_000  # rays per vectorised chunk
@@ -140,16 +141,7 @@ def _validate(shells, outer_radius_um, core, aperture, aperture_mm, aperture_dis
         raise FwdfitError("distance_mm must exceed the outer radius (the detector cuts the sample)")
     if not 1e6 * aperture_distance_m > 1e3 * distance_mm + outer_radius_um:
         raise FwdfitError("aperture_distance_m must exceed the sample-to-detector distance plus the radius")
-    if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
-        raise FwdfitError("pixel_edges_um must be a strictly increasing 1-D array of >= 2 edges")
-    if lam.ndim != 1 or lam.shape != weight.shape or lam.size < 2:
-        raise FwdfitError("the spectrum needs at least two rows of (lambda_A, weight)")
-    if not (np.all(np.isfinite(lam)) and np.all(np.isfinite(weight))):
-        raise FwdfitError("the spectrum holds NaN or infinite values")
-    if lam[0] <= 0 or np.any(np.diff(lam) <= 0) or np.any(weight < 0) or not np.any(weight > 0):
-        raise FwdfitError("spectrum lambda_A must be positive and increasing, weights >= 0, not all 0")
-    if n_batches < 2 or n_rays < n_batches:
-        raise FwdfitError("need n_batches >= 2 and n_rays >= n_batches")
+    check_pixels_and_spectrum(edges, lam, weight, n_rays, n_batches)
     if not (0.0 <= rim_fraction < 1.0 and rim_width_um > 0):
         raise FwdfitError("rim_fraction must lie in [0, 1) and rim_width_um be positive")
 

@@ -85,6 +85,21 @@ class _Stack:
     slope_rms_rad: np.ndarray  # (K+1,) RMS normal slope of each face (bounds_um)
 
 
+def check_pixels_and_spectrum(edges: np.ndarray, lam: np.ndarray, weight: np.ndarray, n_rays: int,
+                              n_batches: int) -> None:
+    """The checks every tracer makes of its pixel edges (µm), spectrum table and ray counts."""
+    if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
+        raise FwdfitError("pixel_edges_um must be a strictly increasing 1-D array of >= 2 edges")
+    if lam.ndim != 1 or lam.shape != weight.shape or lam.size < 2:
+        raise FwdfitError("the spectrum needs at least two rows of (lambda_A, weight)")
+    if not (np.all(np.isfinite(lam)) and np.all(np.isfinite(weight))):
+        raise FwdfitError("the spectrum holds NaN or infinite values")
+    if lam[0] <= 0 or np.any(np.diff(lam) <= 0) or np.any(weight < 0) or not np.any(weight > 0):
+        raise FwdfitError("spectrum lambda_A must be positive and increasing, weights >= 0, not all 0")
+    if n_batches < 2 or n_rays < n_batches:
+        raise FwdfitError("need n_batches >= 2 and n_rays >= n_batches")
+
+
 def _validate(layers, depth_mm, aperture, aperture_mm, aperture_distance_m, distance_mm,
               lam, weight, edges, psf_fwhm_um, n_rays, n_batches):
     """Raise FwdfitError (a ValueError) with a one-line message for nonsense input."""
@@ -99,16 +114,7 @@ def _validate(layers, depth_mm, aperture, aperture_mm, aperture_distance_m, dist
         raise FwdfitError("depth_mm and aperture_mm must be positive, psf_fwhm_um >= 0")
     if not aperture_distance_m * 1e3 > distance_mm:
         raise FwdfitError("aperture_distance_m must exceed the sample-to-detector distance")
-    if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
-        raise FwdfitError("pixel_edges_um must be a strictly increasing 1-D array of >= 2 edges")
-    if lam.ndim != 1 or lam.shape != weight.shape or lam.size < 2:
-        raise FwdfitError("the spectrum needs at least two rows of (lambda_A, weight)")
-    if not (np.all(np.isfinite(lam)) and np.all(np.isfinite(weight))):
-        raise FwdfitError("the spectrum holds NaN or infinite values")
-    if lam[0] <= 0 or np.any(np.diff(lam) <= 0) or np.any(weight < 0) or not np.any(weight > 0):
-        raise FwdfitError("spectrum lambda_A must be positive and increasing, weights >= 0, not all 0")
-    if n_batches < 2 or n_rays < n_batches:
-        raise FwdfitError("need n_batches >= 2 and n_rays >= n_batches")
+    check_pixels_and_spectrum(edges, lam, weight, n_rays, n_batches)
 
 
 def _sample_spectrum(rng: np.random.Generator, lam: np.ndarray, weight: np.ndarray, n: int):
