@@ -22,7 +22,6 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
-import numpy as np  # noqa: E402
 
 import fwdfit  # noqa: E402
 from fwdfit.inference import assembler, free_parameters, geometry_of  # noqa: E402
