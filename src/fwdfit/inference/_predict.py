@@ -133,6 +133,7 @@ class Predictor:
             mesh = self._rows_sharding.mesh
             leaves = jax.device_put(leaves, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
         key = _program_key(leaves, example, f"{treedef}|{self.rows_per_call}|{self.n_free}|{len(devices)}")
+        run.__name__ = f"fwdfit_{key}"  # JAX's persistent cache keys on the name: it serves this source's program only
         compiled, source = _COMPILED.get(key), "reused"
         if compiled is None:
             compile_here = lambda: jax.jit(run).lower(leaves, example).compile()
@@ -233,9 +234,10 @@ def _stored(key: str, in_tree, out_tree, compile_here):
     hits_before = _PERSISTENT_CACHE_HITS[0]
     compiled = compile_here()
     if _PERSISTENT_CACHE_HITS[0] != hits_before:
-        # served by JAX's persistent cache (a program an earlier fwdfit source compiled): such
-        # an executable serializes without its kernels ("Function ... not found" when the next
-        # run loads it), so it is not stored; JAX's cache serves it next time too
+        # served by JAX's persistent cache (this key's file was damaged or deleted): such an
+        # executable serializes without its kernels ("Function ... not found" when the next run
+        # loads it), so it is not stored; a damaged file goes, and JAX's cache serves it next time
+        path.unlink(missing_ok=True)
         return compiled, "loaded"
     try:
         serialized, _, _ = serialize_executable.serialize(compiled)
