@@ -26,7 +26,8 @@ import numpy as np
 
 from ..scene import _registry as registry
 from .._errors import FwdfitError
-from ..model.block import ModelParams, initial_params, layer_value, to_device
+from ..model._arrays import to_device
+from ._geometry import geometry_of
 from ..scene._limits import MAX_TILT_DEG
 from ..scene._scene import Scene
 
@@ -136,7 +137,7 @@ def _scene_value(scene: Scene, key: str, target: tuple) -> float:
     _, index = target
     part = registry.BY_KEY[key].part
     if part == "layers":
-        return layer_value(scene.sample.layers[index[0]], key)
+        return registry.layer_value(scene.sample.layers[index[0]], key)
     if part == "profiles":
         return getattr(scene.profiles[index[0]], key)
     return getattr(scene.sample, key)
@@ -181,9 +182,13 @@ def free_parameters(scene: Scene, vary=None, bounds=None) -> tuple[FreeParameter
 
 
 class Assembler(eqx.Module):
-    """Physical values (n_free,) -> (ModelParams, norm (n_profile,), background (n_profile,))."""
+    """Physical values (n_free,) -> (model parameters, norm (n_profile,), background (n_profile,)).
 
-    base: ModelParams
+    base: the geometry's parameters at the scene's values (``Geometry.initial_params``), a
+    Module with a field per registry key that the model takes, and ``distance_mm`` and
+    ``shift_um`` per profile."""
+
+    base: eqx.Module
     profile_shift_um: jax.Array
     drift_um_per_mm: jax.Array
     norm: jax.Array
@@ -191,7 +196,7 @@ class Assembler(eqx.Module):
     targets: tuple = eqx.field(static=True)
 
     def __call__(self, values):
-        fields = {f.name: getattr(self.base, f.name) for f in dataclasses.fields(ModelParams)}
+        fields = {f.name: getattr(self.base, f.name) for f in dataclasses.fields(self.base)}
         extra = {"shift_um": self.profile_shift_um, "drift_um_per_mm": self.drift_um_per_mm,
                  "norm": self.norm, "background": self.background}
         for field, (scalar, positions, indices) in _by_field(self.targets).items():
@@ -201,7 +206,7 @@ class Assembler(eqx.Module):
             if positions:  # one gather and one scatter per field, however many profiles
                 store[field] = store[field].at[np.asarray(indices)].set(values[np.asarray(positions)])
         fields["shift_um"] = extra["shift_um"] + extra["drift_um_per_mm"] * fields["distance_mm"]
-        return ModelParams(**fields), extra["norm"], extra["background"]
+        return type(self.base)(**fields), extra["norm"], extra["background"]
 
 
 def _by_field(targets: tuple) -> dict[str, tuple[int | None, list[int], list[int]]]:
@@ -217,10 +222,11 @@ def _by_field(targets: tuple) -> dict[str, tuple[int | None, list[int], list[int
 
 
 def assembler(scene: Scene, free: tuple[FreeParameter, ...], dtype=None) -> Assembler:
-    """The map from free values to model inputs, with every other value from the scene."""
+    """The map from free values to model inputs, with every other value from the scene
+    (its geometry's parameters, ``Geometry.initial_params``)."""
     as_array = lambda values: to_device(values, dtype)
     return Assembler(
-        base=initial_params(scene, dtype),
+        base=geometry_of(scene).initial_params(scene, dtype),
         profile_shift_um=as_array([p.shift_um for p in scene.profiles]),
         drift_um_per_mm=as_array(scene.sample.drift_um_per_mm),
         norm=as_array([p.norm for p in scene.profiles]),

@@ -91,3 +91,11 @@ def defaults(name: str) -> dict[str, float]:
 def unit(vary_name: str) -> str:
     """The unit of a parameter by its ``vary`` name (``layers.Al.thickness_um`` -> ``um``)."""
     return BY_KEY[vary_name.rsplit(".", 1)[-1]].unit
+
+
+def layer_value(layer, key: str) -> float:
+    """A layer's value of a registry key; a graded layer's right-hand value left out (NaN)
+    is its left-hand one (``Quantity.uniform_from``)."""
+    value = getattr(layer, key)
+    source = BY_KEY[key].uniform_from
+    return getattr(layer, source) if source and math.isnan(value) else value

@@ -16,11 +16,12 @@ import warnings
 from collections.abc import Collection
 from typing import NamedTuple
 
-import jax
 import numpy as np
 
 from ...scene import _registry as registry
+from ...scene._registry import layer_value as layer_value
 from ..._errors import FwdfitError, ModelWarning
+from .._arrays import to_device as to_device
 from .._kernel import landing_range, landing_regions
 from ...scene._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup, largest_tilt
@@ -165,21 +166,6 @@ def fresnel_nodes(accuracy: float, aperture: str) -> int:
     if aperture == "square":
         return 2
     return max(4, math.ceil(6 * math.sqrt(1e-3 / accuracy)))
-
-
-def to_device(values, dtype=None):
-    """values as a JAX array of ``dtype`` (default float, float32 without x64): a plain
-    transfer, where ``jnp.asarray`` compiles a small program for every new shape (~14 ms
-    each, ~0.2 s of a warm run's plan)."""
-    return jax.device_put(np.asarray(values, dtype=float if dtype is None else dtype))
-
-
-def layer_value(layer, key: str) -> float:
-    """A layer's value of a registry key; a graded layer's right-hand value left out (NaN)
-    is its left-hand one (``Quantity.uniform_from``)."""
-    value = getattr(layer, key)
-    source = registry.BY_KEY[key].uniform_from
-    return getattr(layer, source) if source and math.isnan(value) else value
 
 
 def _graded(scene: Scene, free: Collection[str]) -> tuple[bool, ...]:
