@@ -113,6 +113,9 @@ def _resolve(scene: Scene, name: str) -> list[tuple[str, str, tuple, tuple, floa
     """(canonical name, key, field target, default bounds, step) for one ``vary`` entry."""
     parts = name.split(".")
     quantity = registry.BY_KEY.get(parts[-1])
+    geometry = scene.sample.geometry
+    if quantity is not None and quantity.part == parts[0] and geometry not in quantity.geometries:
+        raise FwdfitError(f"{scene.path}: fit.vary: {name!r}: a {geometry} has no {parts[-1]}")
     part = None if quantity is None or quantity.part != parts[0] else quantity.part
     key, bounds, step = parts[-1], *((quantity.bounds, quantity.step) if part else ((), 0.0))
     layers = {layer.name: layer for layer in scene.sample.layers}
