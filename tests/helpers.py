@@ -188,18 +188,41 @@ IMAGE_VARY = ("sample.tilt_deg", "sample.centre_um", "layers.Al.thickness_um", "
 
 
 def image_scene(image_file: Path, *, thickness_um: float, x0_um: float, n_cols: int, pixel_um: float = 2.4,
-                image_err_file: Path | None = None, per_row=()):
+                image_err_file: Path | None = None, per_row=(), layers=None, psf_fwhm_um: float = 0.0,
+                vary=None):
     """An Al block (2.70 g/cm3, start tilt 0.15°) at 8.5 mm, the ICON 2.7 Å line, one
-    image profile ``radiograph`` of ``n_cols`` columns from ``x0_um``; ``IMAGE_VARY`` free."""
+    image profile ``radiograph`` of ``n_cols`` columns from ``x0_um``; ``IMAGE_VARY`` free.
+    ``layers``: the sample's layers instead of the block (thickness_um then unused)."""
     import fwdfit
 
     profile = fwdfit.Profile("radiograph", 8.5, "l27", "", fwdfit.pixel_grid(x0_um, x0_um + n_cols * pixel_um, pixel_um),
                              image_file=image_file, image_err_file=image_err_file)
-    layer = fwdfit.Layer.from_material("Al", thickness_um, fwdfit.constants_from_formula("Al", 2.70))
-    return fwdfit.Scene(fwdfit.Sample(depth_mm=2.0, tilt_deg=0.15, centre_um=0.0, layers=(layer,)),
-                        {"": fwdfit.Instrument("circular", 40.0, 5.5, pixel_um)},
+    if layers is None:
+        layers = (fwdfit.Layer.from_material("Al", thickness_um, fwdfit.constants_from_formula("Al", 2.70)),)
+    return fwdfit.Scene(fwdfit.Sample(depth_mm=2.0, tilt_deg=0.15, centre_um=0.0, layers=tuple(layers)),
+                        {"": fwdfit.Instrument("circular", 40.0, 5.5, pixel_um, psf_fwhm_um=psf_fwhm_um)},
                         {"l27": fwdfit.GaussianLine(2.7, 0.15)}, (profile,),
-                        fwdfit.FitSpec(IMAGE_VARY, per_row=tuple(per_row)))
+                        fwdfit.FitSpec(IMAGE_VARY if vary is None else tuple(vary), per_row=tuple(per_row)))
+
+
+IMAGE_TRACE = dict(depth_mm=2.0, tilt_deg=0.24, aperture="circular", aperture_mm=40.0, aperture_distance_m=5.5,
+                   distance_mm=8.5)
+
+
+def traced_image(layers, centres_um, *, x0_um: float, n_cols: int, pixel_um: float = 2.4, sub: int = 8,
+                 psf_fwhm_um: float = 0.0, n_rays: int = 4_000_000, seed: int = 3, **trace):
+    """Rows of the exact reference (``fwdfit.trace_reference_rows``) for an image whose stack
+    centre is ``centres_um`` (rows,) µm in each row: the ICON 2.7 Å line at 8.5 mm, tilt
+    0.24° (``IMAGE_TRACE``, overridden by ``trace``). Returns (centres used (rows,), T, T_att
+    (rows, n_cols)): one trace, so every row shares its Monte Carlo noise."""
+    import fwdfit
+
+    lam, weight = gaussian_line_table(2.7, 0.15)
+    reference = fwdfit.trace_reference_rows(
+        list(layers), centres_um=np.asarray(centres_um, float), x0_um=x0_um, pixel_um=pixel_um, n_pixels=n_cols,
+        sub=sub, spectrum_lambda_A=lam, spectrum_weight=weight, n_rays=n_rays, seed=seed,
+        psf_fwhm_um=psf_fwhm_um, **{**IMAGE_TRACE, **trace})
+    return reference.centres_um, reference.T, reference.T_att
 
 
 def al_layer(name="Al", thickness_um=1000.0, sld=2.078, mu=1.39, mu_per_A=0.0):

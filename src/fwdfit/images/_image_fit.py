@@ -3,9 +3,11 @@
 A curved or drifting edge moves the stack's centre from row to row; everything else
 (thicknesses, SLDs, attenuation, tilt) is the sample's and shared. The fit, in rounds:
 
-1. each row's centre from its outer edges (``_starts.outer_edges``); rows without an
-   edge, or mostly masked, are flagged and left out; a row whose edges are implausibly
-   far apart starts from its neighbours' centres instead;
+1. each row's centre from the faces of the stack it shows, found by matching the model's
+   own profile around each face against the rows (``_edges``: the refraction of a weak
+   absorber, the step of a strong one); rows without a face, or mostly masked, are
+   flagged and left out; a row whose faces are implausibly far apart starts from its
+   neighbours' centres instead;
 2. the shared parameters from a joint fit (``Fitter``) of a few averaged profiles: the
    rows, shifted by whole pixels onto a common centre, are averaged in ``_BINS`` bins of
    their sub-pixel offset, each bin a profile whose sample sits at the bin's offset, so
@@ -33,8 +35,9 @@ from ..inference._parameters import assembler, free_parameters
 from ..inference._geometry import geometry_of
 from ..inference._predict import Predictor
 from .._progress import Progress, as_progress
-from ..scene._scene import Profile, Scene, load_scene
-from ..inference._starts import _blur_um, noise_sigma, outer_edges
+from ..scene._scene import ImageLayout, Profile, Scene, load_scene
+from ..inference._starts import noise_sigma
+from ._edges import Faces, check_determined, find_faces, in_view
 
 CENTRE = "sample.centre_um"
 _BINS = 4  # sub-pixel offset bins of the averaged profiles (a quarter pixel each)
@@ -59,7 +62,7 @@ _UNFITTED = FLAG_NO_EDGE | FLAG_MASKED
 
 @dataclasses.dataclass(frozen=True)
 class ImageFit:
-    """The fit of one image (rows, n): shared values from ``shared`` (a FitResult of the
+    """The fit of one image's profiles (rows, n; ``layout`` says where they lie in the file): shared values from ``shared`` (a FitResult of the
     averaged profiles); per row the values and errors (rows, n_per_row) of the parameters
     ``per_row`` (the centre first; NaN: not fitted), chi-square, fitted pixels and flags
     (rows,); images (rows, n) of the data, model, T_att and T_corrected (NaN where masked,
@@ -87,6 +90,7 @@ class ImageFit:
     wall_time_s: float  # after compilation
     row_time_s: float  # the per-row fits of the last round alone
     rounds: int
+    layout: ImageLayout | None = None  # where the rows lie in the image file (None: the whole file, by rows)
 
     @property
     def centre_um(self) -> np.ndarray:
@@ -201,29 +205,40 @@ def _filled(row: np.ndarray) -> np.ndarray:
     return np.interp(index, index[good], row[good])
 
 
-def edge_centres(scene: Scene, profile: Profile) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's centre from its outer edges (rows,) µm, and the flags (rows,): NaN where
-    the row has no edge (FLAG_NO_EDGE), is mostly masked (FLAG_MASKED), or its edges are
-    more than 10 % further apart or closer than the median row's (no flag: it is fitted
-    from its neighbours' centres)."""
+def edge_centres(scene: Scene, profile: Profile, accuracy: float | None = None,
+                 faces: Faces | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's centre (rows,) µm from the faces of the stack it shows (``_edges``), and
+    the flags (rows,): NaN where the row shows no face (FLAG_NO_EDGE), is mostly masked
+    (FLAG_MASKED), or its outermost faces found lie more than 10 % further apart or closer
+    than the median row's (no flag: it is fitted from its neighbours' centres). A row
+    with one face found takes the centre the scene's thicknesses put beside it, moved by
+    that face's median offset in the rows that show more."""
     image = profile.image
-    pixel = scene.instruments[profile.instrument].pixel_um
-    blur = _blur_um(scene, profile)
-    centres, widths = np.full(len(image), np.nan), np.full(len(image), np.nan)
-    flags = np.zeros(len(image), int)
-    for r, row in enumerate(image):
-        if np.isnan(row).mean() > _MAX_MASKED:
-            flags[r] = FLAG_MASKED
-            continue
-        edges = outer_edges(profile.x_um, _filled(row), blur, pixel)
-        if edges is None:
-            flags[r] = FLAG_NO_EDGE
-            continue
-        centres[r], widths[r] = 0.5 * (edges[0] + edges[1]), edges[1] - edges[0]
-    found = np.isfinite(widths)
-    if found.any():
-        off = np.abs(widths - np.median(widths[found])) > _WIDTH_TOLERANCE * np.median(widths[found])
-        centres[found & off] = np.nan
+    flags = np.where(np.isnan(image).mean(axis=1) > _MAX_MASKED, FLAG_MASKED, 0)
+    if faces is None:
+        faces = find_faces(scene, profile, image, flags == 0, accuracy)
+    estimate = faces.position_um - faces.offsets_um[None, :]  # the centre each face puts the stack at
+    found = np.isfinite(estimate)
+    count = found.sum(axis=1)
+    flags[(flags == 0) & (count == 0)] = FLAG_NO_EDGE
+    rows = np.arange(len(image))
+    first = np.argmax(found, axis=1)
+    last = found.shape[1] - 1 - np.argmax(found[:, ::-1], axis=1)
+    centres = np.full(len(image), np.nan)
+    several = count >= 2
+    centres[several] = 0.5 * (estimate[rows, first] + estimate[rows, last])[several]
+    for j in range(found.shape[1]):  # rows with one face: that face's centre, less its bias
+        alone = (count == 1) & found[:, j]
+        bias = estimate[several & found[:, j], j] - centres[several & found[:, j]]
+        centres[alone] = estimate[alone, j] - (np.median(bias) if bias.size else 0.0)
+    if several.any():
+        width = faces.position_um[rows, last] - faces.position_um[rows, first]
+        pairs = first * found.shape[1] + last
+        common = np.bincount(pairs[several]).argmax()
+        usual = several & (pairs == common)
+        typical = np.median(width[usual])
+        off = usual & (np.abs(width - typical) > _WIDTH_TOLERANCE * max(typical, 1e-9))
+        centres[off] = np.nan
     if not np.isfinite(centres).any():
         raise FwdfitError(f"{profile.image_file}: no sample edge found in any of its {len(image)} rows "
                           f"({int(np.count_nonzero(flags == FLAG_MASKED))} of them mostly masked)")
@@ -370,15 +385,21 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     n_pixels = np.isfinite(sigma).sum(axis=1)
     masked = np.isnan(profile.image)
     begin = time.perf_counter()
-    edges, flags = edge_centres(scene, profile)
+    usable = np.isnan(profile.image).mean(axis=1) <= _MAX_MASKED
+    with say.ticking("finding the faces in each row"):
+        faces = find_faces(scene, profile, profile.image, usable, accuracy)
+    edges, flags = edge_centres(scene, profile, accuracy, faces)
+    seen = in_view(faces, edges, profile.x_um, pixel)
+    check_determined(names.shared, seen, scene, scene.path)
     n_rows, n_own = len(edges), len(names.per_row)
     say(f"{profile.name}: {n_rows} rows x {profile.image.shape[1]} pixels, {int(masked.sum())} masked pixels; "
-        f"edges found in {int(np.isfinite(edges).sum())} rows")
+        f"edges found in {int(np.isfinite(edges).sum())} rows; faces in view: "
+        f"{', '.join(str(int(j)) for j in np.flatnonzero(seen))} of 0-{len(seen) - 1}")
     binning = _Binning.of(edges, pixel)
     todo = np.flatnonzero((flags & _UNFITTED) == 0)
     use, centres = np.isfinite(edges), edges.copy()
     fitter = rows = shared = None
-    compile_time = row_time = 0.0
+    compile_time, row_time = faces.compile_time_s, 0.0
     for round_ in range(rounds):
         profiles = binning.profiles(profile, centres, use, sigma, pixel)
         if fitter is None:
@@ -427,7 +448,7 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     wall = time.perf_counter() - begin - compile_time
     result = ImageFit(profile.name, profile.x_um, shared, names.per_row, values, errors, edges, chi2, n_pixels,
                       steps, flags, profile.image, sigma, T_model, T_att, T_corrected, sigma_from_data,
-                      int(masked.sum()), compile_time, wall, row_time, rounds)
+                      int(masked.sum()), compile_time, wall, row_time, rounds, profile.image_layout)
     say(result.summary())
     return result
 

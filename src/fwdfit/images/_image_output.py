@@ -100,8 +100,10 @@ def plot_overview(path: Path, result: ImageFit):
 def write_image_fit(result: ImageFit, out_dir: Path) -> None:
     """Write T_att.tif, T_corrected.tif, residual.tif, rows.csv, result.json and overview.png.
 
-    Masked pixels are NaN in the images, and rows not fitted are NaN in T_att and residual.tif
-    (their T_corrected is the data). Nothing is written if anything fails.
+    The images have the input file's shape and orientation, NaN outside the region (roi);
+    masked pixels are NaN, and rows not fitted are NaN in T_att and residual.tif (their
+    T_corrected is the data). rows.csv numbers the profiles as the file does (``row``, or
+    ``column`` with profile_along = "columns"). Nothing is written if anything fails.
     """
     import tifffile
 
@@ -113,7 +115,9 @@ def write_image_fit(result: ImageFit, out_dir: Path) -> None:
     fitted = result.fitted
     if not np.all(np.isfinite(result.T_att[fitted])):
         raise FwdfitError("T_att is NaN or infinite in a fitted row; nothing written (please report this image)")
-    columns = {"row": np.arange(len(result.flags))}
+    layout = result.layout
+    first = 0 if layout is None else layout.first[0]
+    columns = {"row" if layout is None or layout.along == "rows" else "column": first + np.arange(len(result.flags))}
     for i, name in enumerate(result.per_row):
         columns[_column(name)] = result.row_values[:, i]
         columns[_column(name) + "_err"] = result.row_errors[:, i]
@@ -125,5 +129,6 @@ def write_image_fit(result: ImageFit, out_dir: Path) -> None:
         write_columns(staging / "rows.csv", columns, allow_nan=True)
         for name, image in (("T_att", result.T_att), ("T_corrected", result.T_corrected),
                             ("residual", (result.T - result.T_model) / result.sigma)):
+            image = image if layout is None else layout.image(image)  # the input's shape and orientation
             tifffile.imwrite(staging / f"{name}.tif", image.astype(np.float32))
         plot_overview(staging / "overview.png", result)

@@ -7,6 +7,7 @@ from ._limits import MAX_PIXELS as MAX_PIXELS
 from ._limits import MAX_TILT_DEG as MAX_TILT_DEG
 from ._materials import MaterialConstants as MaterialConstants
 from ._scene import FitSpec as FitSpec
+from ._scene import ImageLayout as ImageLayout
 from ._scene import Instrument as Instrument
 from ._scene import Layer as Layer
 from ._scene import Profile as Profile

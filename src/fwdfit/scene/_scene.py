@@ -112,6 +112,38 @@ class Instrument:
 
 
 @dataclasses.dataclass(frozen=True)
+class ImageLayout:
+    """Where an image profile's rows come from in its image file (rows x columns, ``shape``):
+    the region ``roi`` (row0, row1, col0, col1, half-open) and, with ``along = "columns"``,
+    its columns as the profiles (the image transposed: the edge runs across the rows).
+    ``mask_file``: the image whose non-zero pixels are left out, if any."""
+
+    shape: tuple[int, int]
+    roi: tuple[int, int, int, int]
+    along: str = "rows"
+    mask_file: Path | None = None
+
+    @property
+    def first(self) -> tuple[int, int]:
+        """(profile, pixel) index in the file of the first profile's first pixel."""
+        row0, _, col0, _ = self.roi
+        return (row0, col0) if self.along == "rows" else (col0, row0)
+
+    def profiles(self, image: np.ndarray) -> np.ndarray:
+        """The file's image (shape) to the profiles (n_profiles, n_pixels): cut, transposed."""
+        row0, row1, col0, col1 = self.roi
+        region = image[row0:row1, col0:col1]
+        return region if self.along == "rows" else region.T
+
+    def image(self, profiles: np.ndarray, fill: float = np.nan) -> np.ndarray:
+        """The profiles (n_profiles, n_pixels) back in the file's shape, ``fill`` outside the region."""
+        row0, row1, col0, col1 = self.roi
+        out = np.full(self.shape, fill, dtype=profiles.dtype)
+        out[row0:row1, col0:col1] = profiles if self.along == "rows" else profiles.T
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
 class Profile:
     """One measured or simulated profile: pixel centres ``x_um`` (n,), data if measured.
 
@@ -137,6 +169,7 @@ class Profile:
     image_file: Path | None = None
     image_err_file: Path | None = None
     errors: str = ""  # "estimate": noise estimated from T on purpose; "": T_err where given
+    image_layout: ImageLayout | None = None  # an image profile's region and orientation in its file
 
 
 def pixel_count(x_min_um: float, x_max_um: float, pixel_um: float) -> int:
@@ -173,7 +206,7 @@ class Scene:
         spectrum tables (an output folder must hold none of them)."""
         files = [self.path]
         for p in self.profiles:
-            files += [p.file, p.image_file, p.image_err_file]
+            files += [p.file, p.image_file, p.image_err_file, p.image_layout and p.image_layout.mask_file]
         files += [getattr(s, "path", None) for s in self.spectra.values()]
         files += [getattr(getattr(s, "table", None), "path", None) for s in self.spectra.values()]
         return tuple(dict.fromkeys(Path(f) for f in files if f is not None))
@@ -185,8 +218,10 @@ _LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *regi
 _FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_data)  # a fit may leave them out
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
                     "psf_fwhm_um", "fresnel"}
-_PROFILE_KEYS = {"name", "spectrum", "instrument", "file", "x_min_um", "x_max_um", "image", "image_err", "x0_um",
+_IMAGE_KEYS = ("image_err", "x0_um", "profile_along", "roi", "mask")  # only with image = ...
+_PROFILE_KEYS = {"name", "spectrum", "instrument", "file", "x_min_um", "x_max_um", "image", *_IMAGE_KEYS,
                  "errors", *registry.part("profiles")}
+PROFILE_ALONG = ("rows", "columns")
 ERRORS_ESTIMATE = "estimate"  # errors = "estimate": the noise from the data, a T_err column ignored
 # Columns a profile table may hold besides x_um, T, T_err, read past: those fwdfit writes
 # (simulate, fit), the shipped example's truth, and the McStas reference tables'.
@@ -530,14 +565,18 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
                 reader.fail(reader.key(key), f"a profile takes either {key} or {needs}, not both")
         if reader.has("errors") and not reader.has("file"):
             reader.fail(reader.key("errors"), "only for a measured profile (file = ...)")
-        for key in ("image_err", "x0_um"):
+        for key in _IMAGE_KEYS:
             if reader.has(key) and not reader.has("image"):
                 reader.fail(reader.key(key), "only for an image profile (image = ...)")
+        layout = None
         if reader.has("image"):
             image_file = path.parent / reader.string("image")
             err_file = path.parent / reader.string("image_err") if reader.has("image_err") else None
+            mask_file = path.parent / reader.string("mask") if reader.has("mask") else None
             image, image_err = read_image(reader, image_file, err_file)
-            x0_um = reader.number("x0_um", 0.0)
+            layout = _image_layout(reader, image.shape, mask_file)
+            image, image_err = laid_out(reader, layout, image, image_err)
+            x0_um = reader.number("x0_um", 0.0) + layout.first[1] * pixel_um
             x_um = pixel_grid(x0_um, x0_um + image.shape[1] * pixel_um, pixel_um)
         elif reader.has("file"):
             file = path.parent / reader.string("file")
@@ -565,8 +604,45 @@ def _profiles(path, table, instruments, spectra) -> tuple[Profile, ...]:
         profiles.append(Profile(
             name=name, spectrum=spectrum, instrument=instrument, x_um=x_um, T=T, T_err=T_err,
             **_plain(reader, "profiles"), file=file, image=image, image_err=image_err,
-            image_file=image_file, image_err_file=err_file, errors=reader.string("errors", "")))
+            image_file=image_file, image_err_file=err_file, errors=reader.string("errors", ""),
+            image_layout=layout))
     return tuple(profiles)
+
+
+def _image_layout(reader: _Reader, shape: tuple[int, int], mask_file: Path | None) -> ImageLayout:
+    """profile_along and roi of an image profile, checked against its image's shape."""
+    along = reader.string("profile_along", "rows", choices=PROFILE_ALONG)
+    roi = (0, shape[0], 0, shape[1])
+    if reader.has("roi"):
+        value = reader.table["roi"]
+        if (not isinstance(value, list) or len(value) != 4
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
+            reader.fail(reader.key("roi"), f"must be four whole pixel indices [row0, row1, col0, col1], got {value!r}")
+        row0, row1, col0, col1 = value
+        if not (0 <= row0 < row1 <= shape[0] and 0 <= col0 < col1 <= shape[1]):
+            reader.fail(reader.key("roi"), f"{value} is not a region of the image ({shape[0]} x {shape[1]} pixels: "
+                        f"0 <= row0 < row1 <= {shape[0]}, 0 <= col0 < col1 <= {shape[1]})")
+        roi = tuple(value)
+    return ImageLayout(tuple(shape), roi, along, mask_file)
+
+
+def laid_out(reader: _Reader, layout: ImageLayout, image: np.ndarray, image_err: np.ndarray | None):
+    """The image (and errors) of a file as its profiles (``layout``), masked pixels NaN;
+    the profiles must be at least 16 and at most MAX_PIXELS pixels long."""
+    if layout.mask_file is not None:
+        mask = _read_tiff_2d(reader, "mask", layout.mask_file, floats=False)
+        if mask.shape != image.shape:
+            reader.fail(reader.key("mask"), f"{layout.mask_file.name} is {mask.shape[0]} x {mask.shape[1]} pixels, "
+                        f"the image {image.shape[0]} x {image.shape[1]}")
+        image = np.where(mask != 0, np.nan, image)
+    image = layout.profiles(image)
+    image_err = None if image_err is None else layout.profiles(image_err)
+    what = "columns" if layout.along == "rows" else "rows"
+    if image.shape[1] > MAX_PIXELS:
+        reader.fail(reader.key("image"), f"{image.shape[1]} {what} in a profile, more than {MAX_PIXELS} ({SEE})")
+    if image.shape[1] < 16:
+        reader.fail(reader.key("image"), f"{image.shape[1]} {what} in a profile: it needs at least 16 pixels")
+    return image, image_err
 
 
 def read_image(reader: _Reader, image_file: Path, err_file: Path | None):
@@ -577,10 +653,6 @@ def read_image(reader: _Reader, image_file: Path, err_file: Path | None):
     """
     image = _read_tiff_2d(reader, "image", image_file)
     image_err = None if err_file is None else _read_tiff_2d(reader, "image_err", err_file)
-    if image.shape[1] > MAX_PIXELS:
-        reader.fail(reader.key("image"), f"{image.shape[1]} columns, more than {MAX_PIXELS} ({SEE})")
-    if image.shape[1] < 16:
-        reader.fail(reader.key("image"), f"{image.shape[1]} columns: a row needs at least 16 pixels")
     if image_err is not None:
         if image_err.shape != image.shape:
             reader.fail(reader.key("image_err"), f"{err_file.name} is {image_err.shape[0]} x "
@@ -599,17 +671,20 @@ def with_image(scene: Scene, image_file: str | Path) -> Scene:
     """
     index = next(i for i, p in enumerate(scene.profiles) if p.image is not None)
     profile = scene.profiles[index]
-    image, _ = read_image(_Reader(scene.path, {}, f"profiles[{index}]", set()), Path(image_file), None)
-    if image.shape != profile.image.shape:
+    reader = _Reader(scene.path, {}, f"profiles[{index}]", set())
+    image, _ = read_image(reader, Path(image_file), None)
+    shape = profile.image_layout.shape
+    if image.shape != shape:
         raise FwdfitError(f"{image_file}: {image.shape[0]} x {image.shape[1]} pixels, the template image "
-                          f"{profile.image_file.name} {profile.image.shape[0]} x {profile.image.shape[1]}")
+                          f"{profile.image_file.name} {shape[0]} x {shape[1]}")
+    image, _ = laid_out(reader, profile.image_layout, image, None)
     replaced = dataclasses.replace(profile, image=image, image_err=None, image_file=Path(image_file),
                                    image_err_file=None)
     profiles = scene.profiles[:index] + (replaced,) + scene.profiles[index + 1:]
     return dataclasses.replace(scene, profiles=profiles)
 
 
-def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
+def _read_tiff_2d(reader: _Reader, key: str, file: Path, floats: bool = True) -> np.ndarray:
     import tifffile
 
     try:
@@ -622,7 +697,7 @@ def _read_tiff_2d(reader: _Reader, key: str, file: Path) -> np.ndarray:
     data = np.squeeze(data)
     if data.ndim != 2 or min(data.shape) < 1:
         reader.fail(reader.key(key), f"{file}: needs one 2-D image (rows x columns), got shape {data.shape}")
-    if not np.issubdtype(data.dtype, np.floating):
+    if floats and not np.issubdtype(data.dtype, np.floating):
         reader.fail(reader.key(key), f"{file}: pixel type {data.dtype}: needs a float image "
                     "of normalised transmission, not raw counts")
     return data.astype(float)

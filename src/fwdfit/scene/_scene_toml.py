@@ -152,7 +152,15 @@ def _profile(index: int, p: Profile, scene: Scene, path) -> list[tuple[str, obje
         entries.append(("image", path(p.image_file)))
         if p.image_err_file is not None:
             entries.append(("image_err", path(p.image_err_file)))
-        entries += _changed([("x0_um", _grid_start(p.x_um, pixel_um, where))], {"x0_um": 0.0})
+        layout = p.image_layout
+        skipped = 0 if layout is None else layout.first[1]  # pixels of the file left of the region
+        entries += _changed([("x0_um", _grid_start(p.x_um, pixel_um, where) - skipped * pixel_um)], {"x0_um": 0.0})
+        if layout is not None:
+            entries += _changed([("profile_along", layout.along)], {"profile_along": "rows"})
+            if layout.roi != (0, layout.shape[0], 0, layout.shape[1]):
+                entries.append(("roi", list(layout.roi)))
+            if layout.mask_file is not None:
+                entries.append(("mask", path(layout.mask_file)))
     elif p.file is not None:
         entries.append(("file", path(p.file)))
     else:
@@ -189,7 +197,7 @@ def _key(name: str) -> str:
 
 
 def _value(value) -> str:
-    """A TOML value: bool, string (basic, control characters escaped), float or list."""
+    """A TOML value: bool, string (basic, control characters escaped), int, float or list."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
@@ -198,4 +206,6 @@ def _value(value) -> str:
                              for c in escaped) + '"'
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_value(v) for v in value) + "]"
+    if isinstance(value, int):  # a pixel index (roi)
+        return str(value)
     return repr(float(value))
