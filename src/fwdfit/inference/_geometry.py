@@ -17,6 +17,7 @@ import numpy as np
 from ..model._geometry import Geometry as Geometry
 from ..model._geometry import edge_half_width_um
 from ..model.block._plan import build_model, initial_params
+from ..model.cylinder import Cylinder
 from ..scene import _registry as registry
 from ._starts import SLD_VALUE_MAX, estimate, narrow_profiles
 
@@ -88,7 +89,7 @@ class LayeredBlock:
         return faces, edge_half_width_um(profile.distance_mm, penumbra, instrument.psf_fwhm_um, spread)
 
 
-GEOMETRIES = {"block": LayeredBlock}  # a scene's [sample] geometry -> its shape
+GEOMETRIES = {"block": LayeredBlock, "cylinder": Cylinder}  # a scene's [sample] geometry -> its shape
 
 
 def geometry_of(scene) -> Geometry:

@@ -31,8 +31,10 @@ def _polar(p, r):
 
 
 def _half_chord(p, r):
-    """sqrt(r^2 - p^2) where p < r, else 0."""
-    return jnp.sqrt(jnp.maximum(r * r - p * p, 0.0))
+    """sqrt(r^2 - p^2) where p < r, else 0 (the gradient 0 there, not 0 x inf)."""
+    square = r * r - p * p
+    inside = square > 0
+    return jnp.where(inside, jnp.sqrt(jnp.where(inside, square, 1.0)), 0.0)
 
 
 def trace(b, radii, n, mu):

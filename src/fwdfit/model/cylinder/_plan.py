@@ -1,0 +1,143 @@
+"""A cylinder scene planned into its forward model: the static ray grids, cells and
+wavelength nodes (``build_model``), and the scene's values as parameters (``initial_params``).
+
+Sizes, and why: the sub-pixel cells are a quarter pixel (cloud-in-cell deposits are exact
+to second order in the cell, and the rim's peak is a few µm wide); the uniform ray grid
+steps half a cell in the detector plane, so that every cell receives several rays; the
+circles' grids are geometric (``_FINE_PER_SIDE`` rays from 1e-5 µm to the taper's outer
+end) because a ray's deflection near a circle changes like the square root of its
+distance from it; a free radius or distance is served up to ``_FREE_MARGIN`` beyond its
+planned value (the grids and kernels are static).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection
+
+import numpy as np
+
+from ..._errors import FwdfitError
+from ...scene import _registry as registry
+from ...scene._limits import check_domain
+from ...scene._scene import Scene
+from ...scene._spectrum import wavelength_quadrature
+from .._arrays import to_device
+from ._model import TAPER_UM, CylinderGroup, CylinderModel, CylinderParams
+
+_FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+_PSF_TRUNCATION_SIGMAS = 5.0
+_SUB_CELLS = 4  # cells per pixel
+_FINE_PER_SIDE = 96  # rays on each side of each circle
+_FINE_FROM_UM = 1e-5
+_FREE_MARGIN = 0.3  # a free radius / distance: grids sized this fraction beyond the plan
+_ATT_NODES = 128  # wavelength nodes of T_att (straight chords: cheap)
+
+
+def _nodes(accuracy: float) -> int:
+    """Wavelength nodes of T: the deflection scales as lambda^2, the landings of one node
+    are a sharp caustic the penumbra smooths; 48 nodes reach 1e-3 on a white beam."""
+    return int(min(128, max(24, round(48 * math.sqrt(1e-3 / accuracy)))))
+
+
+def _layer_keys() -> tuple[str, ...]:
+    return tuple(key for key, q in registry.part("layers", "cylinder").items() if q.model == "params")
+
+
+def initial_params(scene: Scene, dtype=None) -> CylinderParams:
+    """The scene's values as the cylinder's parameters; every value must be given."""
+    sample = scene.sample
+    if math.isnan(sample.outer_radius_um):
+        raise FwdfitError(f"{scene.path}: sample.outer_radius_um is missing (only a fit may leave out the "
+                          "values it varies)")
+    for layer in sample.layers:
+        for key in (key for key, q in registry.part("layers", "cylinder").items() if q.from_data):
+            if math.isnan(getattr(layer, key)):
+                raise FwdfitError(f"{scene.path}: layer {layer.name!r}: {key} is missing (only a fit may leave "
+                                  "out the values it varies)")
+    arr = lambda values: to_device(values, dtype)
+    return CylinderParams(
+        **{key: arr([registry.layer_value(l, key) for l in sample.layers]) for key in _layer_keys()},
+        outer_radius_um=arr(sample.outer_radius_um),
+        centre_um=arr(sample.centre_um),
+        distance_mm=arr([p.distance_mm for p in scene.profiles]),
+        shift_um=arr([p.shift_um + sample.drift_um_per_mm * p.distance_mm for p in scene.profiles]),
+    )
+
+
+def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
+    """Tabulated attenuation (n_lam, n_layer) 1/m (0 without a material table)."""
+    return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
+                     for l in scene.sample.layers], axis=-1)
+
+
+def _fine_grid() -> tuple[np.ndarray, np.ndarray]:
+    """Distances d (n,) µm from a circle and their weights (n,) µm, tapered (``TAPER_UM``)."""
+    edges = np.concatenate([[0.0], np.geomspace(_FINE_FROM_UM, TAPER_UM[1], _FINE_PER_SIDE)])
+    d = 0.5 * (edges[1:] + edges[:-1])
+    near, far = TAPER_UM
+    t = np.clip((d - near) / (far - near), 0.0, 1.0)
+    return d, np.diff(edges) * np.cos(0.5 * np.pi * t) ** 2
+
+
+def build_model(scene: Scene, accuracy: float | None = None, free: Collection[str] = (),
+                tilt_range_deg=None) -> CylinderModel:
+    """The forward model for every profile of a cylinder ``scene``.
+
+    accuracy: target RMS error in T (default the scene's ``[model] accuracy``); free:
+    parameter names that may change (a free radius or distance widens the static grids);
+    tilt_range_deg: unused (a cylinder has no tilt).
+    """
+    accuracy = scene.accuracy if accuracy is None else check_domain("accuracy", accuracy, "accuracy")
+    sample = scene.sample
+    free = set(free)
+    grow = 1.0 + (_FREE_MARGIN if "sample.outer_radius_um" in free else 0.0)
+    b_max = sample.outer_radius_um * grow + TAPER_UM[1] + 1.0
+    wide = any(name.startswith("profiles.") and name.endswith(".distance_mm") for name in free)
+    plans: dict[tuple, list[int]] = {}
+    per_profile, pads, steps = [], {}, []
+    for i, profile in enumerate(scene.profiles):
+        instrument = scene.instruments[profile.instrument]
+        spectrum = scene.spectra[profile.spectrum]
+        x = np.asarray(profile.x_um, float)
+        if np.max(np.abs(np.diff(x) - instrument.pixel_um)) > 1e-3 * instrument.pixel_um:
+            raise FwdfitError(f"profile {profile.name!r}: x_um must be spaced by the instrument's pixel_um = "
+                              f"{instrument.pixel_um}")
+        cell = instrument.pixel_um / _SUB_CELLS
+        L = instrument.aperture_distance_m * 1e6
+        delta = 1e3 * profile.distance_mm * (1.0 + (_FREE_MARGIN if wide else 0.0))
+        width = instrument.aperture_mm * 1e3 * delta / (L - delta)
+        aperture_cells = math.ceil(0.5 * width / cell) + 1
+        sigma = instrument.psf_fwhm_um / _FWHM_PER_SIGMA
+        psf_cells = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / cell) if sigma > 0 else 0
+        lam, weight = wavelength_quadrature(spectrum, _nodes(accuracy))
+        att_lam, att_weight = wavelength_quadrature(spectrum, _ATT_NODES)
+        key = (profile.instrument, len(x), len(lam), len(att_lam))
+        plans.setdefault(key, []).append(i)
+        pads[i] = (aperture_cells, psf_cells)
+        first = x[0] - 0.5 * instrument.pixel_um + 0.5 * cell
+        per_profile.append((first, lam, weight, _mu_tables(scene, lam), att_lam, att_weight,
+                            _mu_tables(scene, att_lam)))
+        steps.append(0.5 * cell * (L - 1e3 * profile.distance_mm) / L)
+    groups = []
+    for (name, n_pixel, _, _), index in plans.items():
+        instrument = scene.instruments[name]
+        cell = instrument.pixel_um / _SUB_CELLS
+        aperture_cells = max(pads[i][0] for i in index)
+        psf_cells = max(pads[i][1] for i in index)
+        n_pad = aperture_cells + psf_cells
+        stack = lambda k: to_device(np.stack([per_profile[i][k] for i in index]))
+        groups.append(CylinderGroup(
+            index=tuple(index), aperture=instrument.aperture, aperture_um=instrument.aperture_mm * 1e3,
+            aperture_distance_um=instrument.aperture_distance_m * 1e6,
+            psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, cell_um=cell, n_pixel=n_pixel,
+            n_sub=_SUB_CELLS, aperture_cells=aperture_cells, psf_cells=psf_cells,
+            first_cell_um=to_device([per_profile[i][0] - n_pad * cell for i in index]),
+            wavelength_A=stack(1), wavelength_weight=stack(2), mu_table_per_m=stack(3),
+            att_wavelength_A=stack(4), att_weight=stack(5), att_mu_table_per_m=stack(6)))
+    step = min(steps)
+    coarse = (np.arange(math.ceil(b_max / step)) + 0.5) * step
+    fine_d, fine_w = _fine_grid()
+    return CylinderModel(groups=tuple(groups), coarse_b_um=to_device(coarse), coarse_step_um=step,
+                         fine_d_um=to_device(fine_d), fine_weight_um=to_device(fine_w),
+                         n_profiles=len(scene.profiles), tube=sample.core == "vacuum")
