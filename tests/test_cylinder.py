@@ -175,7 +175,6 @@ def _noisy_data(tmp_path, seed=3, sigma=2e-3):
     return files
 
 
-@pytest.mark.slow
 def test_fit_rod_with_shell_from_data_starts(tmp_path):
     """Noisy rod data (2e-3 per pixel): radius, centre, the 30 µm shell and its SLD fitted
     from starts read off the data (no start values)."""
@@ -190,4 +189,28 @@ def test_fit_rod_with_shell_from_data_starts(tmp_path):
     assert values["sample.centre_um"] == pytest.approx(12.0, abs=1.0)
     assert values["layers.oxide.thickness_um"] == pytest.approx(30.0, abs=1.0)
     assert values["layers.oxide.sld_e6_per_A2"] == pytest.approx(5.0, rel=0.05)
+    assert 0.8 <= result.chi2 / result.dof <= 1.3
+    assert result.quality.passed
+
+
+def test_fit_tube_wall_from_data_starts(tmp_path):
+    """A Zr-like tube (vacuum core): radius and wall thickness from the data, SLD scanned."""
+    wall = '[[sample.layers]]\nname = "wall"\nthickness_um = 60.0\nsld_e6_per_A2 = 3.0\nmu_per_m = 30.0\n'
+    truth = _load(tmp_path, _scene_text(wall, core="vacuum", centre=-8.0), "truth.toml")
+    rng = np.random.default_rng(5)
+    files = []
+    for p in fwdfit.simulate(truth):
+        T = p.T + 2e-3 * rng.standard_normal(p.T.shape)
+        np.savetxt(tmp_path / f"{p.name}.csv", np.column_stack([p.x_um, T, np.full_like(T, 2e-3)]), delimiter=",",
+                   header="x_um,T,T_err", comments="", fmt="%.8f")
+        files.append(f"{p.name}.csv")
+    fit = ('[fit]\nvary = ["sample.outer_radius_um", "sample.centre_um", "layers.wall.thickness_um", '
+           '"layers.wall.sld_e6_per_A2"]\n')
+    guess = wall.replace("thickness_um = 60.0\nsld_e6_per_A2 = 3.0\n", "")
+    text = _scene_text(guess, core="vacuum", files=files, fit=fit).replace("outer_radius_um = 300.0\n", "")
+    result = fwdfit.fit(_load(tmp_path, text))
+    values = dict(zip(result.names, result.values))
+    assert values["sample.outer_radius_um"] == pytest.approx(300.0, abs=1.0)
+    assert values["layers.wall.thickness_um"] == pytest.approx(60.0, abs=1.0)
+    assert values["layers.wall.sld_e6_per_A2"] == pytest.approx(3.0, rel=0.05)
     assert 0.8 <= result.chi2 / result.dof <= 1.3

@@ -345,6 +345,8 @@ def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instr
     tilt = math.radians(sample.tilt_deg)
     width_mm = 1e-3 * sum(t for t in (layer.thickness_um for layer in sample.layers) if math.isfinite(t))
     reach = 0.5 * sample.depth_mm + 0.5 * width_mm * abs(math.sin(tilt))
+    if math.isnan(reach):  # a cylinder's radius left to the fit: checked once fitted
+        reach = 0.0
     for index, profile in enumerate(profiles):
         where = f"{path}: profiles[{index}].distance_mm"
         if profile.distance_mm <= reach:

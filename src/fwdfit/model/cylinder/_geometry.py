@@ -26,6 +26,8 @@ from ._plan import build_model, initial_params
 _OPEN_FRACTION = 0.08  # each end of a profile taken as open beam for its level
 _FEATURE_FRACTION = 0.3  # a rim's flank: where the deviation first reaches this fraction of its largest
 _FALLBACK_MU_PER_M = 10.0
+_MIN_SMOOTH_PIXELS = 5  # the rim is found on a running mean of at least this many pixels ...
+_NOISE_FACTOR = 5.0  # ... where the departure exceeds this many times the open beam's scatter
 
 
 def _magnification(scene, profile) -> float:
@@ -39,6 +41,7 @@ def _axis_um(scene, profile, centre_um: float) -> float:
 
 
 def _penumbra_um(scene, profile) -> float:
+    """The penumbra's width (µm) on the detector."""
     instrument = scene.instruments[profile.instrument]
     return profile.distance_mm * instrument.aperture_mm / instrument.aperture_distance_m
 
@@ -54,11 +57,13 @@ def _rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float, float
     """(left, right, open level): the outermost points where the smoothed profile departs
     from its open level by ``_FEATURE_FRACTION`` of its largest departure; None where the
     profile shows no rim on a side."""
-    s = _smooth(T, pixels)
+    s = _smooth(T, max(pixels, _MIN_SMOOTH_PIXELS))
     n_open = max(3, int(_OPEN_FRACTION * len(s)))
-    level = float(np.median(np.concatenate([s[:n_open], s[-n_open:]])))
+    open_beam = np.concatenate([s[:n_open], s[-n_open:]])
+    level = float(np.median(open_beam))
     deviation = np.abs(s - level)
-    inside = np.nonzero(deviation >= _FEATURE_FRACTION * deviation.max())[0]
+    noise = float(np.std(open_beam))
+    inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
     if len(inside) < 2 or inside[0] < n_open or inside[-1] >= len(s) - n_open:
         return None
     return float(x[inside[0]]), float(x[inside[-1]]), level
@@ -102,7 +107,7 @@ class Cylinder:
     @staticmethod
     def _pixels(scene, profile) -> int:
         pixel = scene.instruments[profile.instrument].pixel_um
-        return max(1, int(0.25 * _penumbra_um(scene, profile) * 1e3 / pixel))
+        return max(1, int(0.25 * _penumbra_um(scene, profile) / pixel))
 
     def estimate(self, scene, free, T, model):
         sample = scene.sample
@@ -197,8 +202,8 @@ class Cylinder:
         for k, r in enumerate(radii):
             if r <= 0:
                 continue
-            label = f"{media[k]} | {media[k + 1]}"
-            faces += [(M * (axis - r),) * 2 + (label,), (M * (axis + r),) * 2 + (label,)]
+            faces += [(M * (axis - r),) * 2 + (f"{media[k + 1]} | {media[k]}, left",),
+                      (M * (axis + r),) * 2 + (f"{media[k]} | {media[k + 1]}, right",)]
         faces.sort(key=lambda face: face[0])
         return faces, edge_half_width_um(profile.distance_mm, _penumbra_um(scene, profile), instrument.psf_fwhm_um,
                                          0.0)
