@@ -214,3 +214,20 @@ def test_fit_tube_wall_from_data_starts(tmp_path):
     assert values["layers.wall.thickness_um"] == pytest.approx(60.0, abs=1.0)
     assert values["layers.wall.sld_e6_per_A2"] == pytest.approx(3.0, rel=0.05)
     assert 0.8 <= result.chi2 / result.dof <= 1.3
+
+
+def test_cli_simulate_and_fit(tmp_path):
+    """``fwdfit simulate`` and ``fwdfit fit`` on a cylinder scene: the same commands as a block's."""
+    from fwdfit.cli import main
+    files = _noisy_data(tmp_path)
+    assert main(["simulate", str(tmp_path / "truth.toml"), "--out", str(tmp_path / "sim"), "--quiet"]) == 0
+    assert sorted(p.name for p in (tmp_path / "sim").glob("*.csv")) == sorted(files)
+    fit = '[fit]\nvary = ["sample.outer_radius_um", "sample.centre_um", "layers.oxide.thickness_um"]\n'
+    text = _scene_text(SHELL_ROD.replace("thickness_um = 30.0\n", ""), files=files, fit=fit, radius=310.0)
+    (tmp_path / "fit.toml").write_text(text)
+    assert main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    fitted = fwdfit.load_scene(tmp_path / "out" / "fitted_scene.toml")
+    assert fitted.sample.geometry == "cylinder"
+    assert fitted.sample.outer_radius_um == pytest.approx(300.0, abs=1.0)
+    assert fitted.sample.layers[0].thickness_um == pytest.approx(30.0, abs=1.0)
+    assert fitted.sample.layers[1].thickness_um == pytest.approx(270.0, abs=2.0)  # the core: the rest
