@@ -1,11 +1,12 @@
 """A cylinder scene planned into its forward model: the static ray grids, cells and
 wavelength nodes (``build_model``), and the scene's values as parameters (``initial_params``).
 
-Sizes, and why: the sub-pixel cells are a quarter pixel (cloud-in-cell deposits are exact
-to second order in the cell, and the rim's peak is a few µm wide); the uniform ray grid
+Sizes, and why (``_nodes``, ``_sub_cells``: measured on the McStas rod): the sub-pixel
+cells are a quarter pixel at the default accuracy (cloud-in-cell deposits are exact to
+second order in the cell, and the rim's peak is a few µm wide); the uniform ray grid
 steps half a cell in the detector plane, so that every cell receives several rays; the
-circles' grids are geometric (``_FINE_PER_SIDE`` rays from 1e-5 µm to the taper's outer
-end) because a ray's deflection near a circle changes like the square root of its
+circles' grids are geometric (``_FINE_PER_SIDE`` rays from 1e-5 to 0.1 µm, then uniform
+to the taper's outer end) because a ray's deflection near a circle changes like the square root of its
 distance from it; a free radius or distance is served up to ``_FREE_MARGIN`` beyond its
 planned value (the grids and kernels are static).
 """
@@ -27,17 +28,25 @@ from ._model import TAPER_UM, CylinderGroup, CylinderModel, CylinderParams
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
-_SUB_CELLS = 4  # cells per pixel
-_FINE_PER_SIDE = 96  # rays on each side of each circle
+_FINE_PER_SIDE = 24  # geometric rays on each side of each circle, 1e-5 to 0.1 µm from it ...
 _FINE_FROM_UM = 1e-5
+_FINE_UNIFORM_UM = 0.1  # ... then uniform, 0.15 µm apart (below a quarter of a 2.4 µm pixel:
+_FINE_STEP_UM = 0.15  # rays sparser than the cells deposit lumps the penumbra does not smooth)
 _FREE_MARGIN = 0.3  # a free radius / distance: grids sized this fraction beyond the plan
 _ATT_NODES = 128  # wavelength nodes of T_att (straight chords: cheap)
 
 
 def _nodes(accuracy: float) -> int:
     """Wavelength nodes of T: the deflection scales as lambda^2, the landings of one node
-    are a sharp caustic the penumbra smooths; 48 nodes reach 1e-3 on a white beam."""
-    return int(min(128, max(24, round(48 * math.sqrt(1e-3 / accuracy)))))
+    are a sharp caustic the penumbra smooths; on the McStas rod 16 nodes differ from 48 by
+    3e-6 RMS and from 12 by 1e-5 (BOA white beam, 1.1-34.4 mm)."""
+    return int(min(96, max(12, round(16 * math.sqrt(1e-3 / accuracy)))))
+
+
+def _sub_cells(accuracy: float) -> int:
+    """Cells per pixel: 4 (2 differ by 8e-5 RMS at 1.1 mm, but lower the rim's peak there
+    by 4 %: the deposit's spread of one cell widens a peak a few µm wide)."""
+    return 4 if accuracy >= 3e-4 else 8
 
 
 def _layer_keys() -> tuple[str, ...]:
@@ -73,7 +82,8 @@ def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
 
 def _fine_grid() -> tuple[np.ndarray, np.ndarray]:
     """Distances d (n,) µm from a circle and their weights (n,) µm, tapered (``TAPER_UM``)."""
-    edges = np.concatenate([[0.0], np.geomspace(_FINE_FROM_UM, TAPER_UM[1], _FINE_PER_SIDE)])
+    edges = np.concatenate([[0.0], np.geomspace(_FINE_FROM_UM, _FINE_UNIFORM_UM, _FINE_PER_SIDE),
+                            np.arange(_FINE_UNIFORM_UM, TAPER_UM[1], _FINE_STEP_UM)[1:], [TAPER_UM[1]]])
     d = 0.5 * (edges[1:] + edges[:-1])
     near, far = TAPER_UM
     t = np.clip((d - near) / (far - near), 0.0, 1.0)
@@ -103,7 +113,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         if np.max(np.abs(np.diff(x) - instrument.pixel_um)) > 1e-3 * instrument.pixel_um:
             raise FwdfitError(f"profile {profile.name!r}: x_um must be spaced by the instrument's pixel_um = "
                               f"{instrument.pixel_um}")
-        cell = instrument.pixel_um / _SUB_CELLS
+        cell = instrument.pixel_um / _sub_cells(accuracy)
         L = instrument.aperture_distance_m * 1e6
         delta = 1e3 * profile.distance_mm * (1.0 + (_FREE_MARGIN if wide else 0.0))
         width = instrument.aperture_mm * 1e3 * delta / (L - delta)
@@ -122,7 +132,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     groups = []
     for (name, n_pixel, _, _), index in plans.items():
         instrument = scene.instruments[name]
-        cell = instrument.pixel_um / _SUB_CELLS
+        cell = instrument.pixel_um / _sub_cells(accuracy)
         aperture_cells = max(pads[i][0] for i in index)
         psf_cells = max(pads[i][1] for i in index)
         n_pad = aperture_cells + psf_cells
@@ -131,7 +141,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             index=tuple(index), aperture=instrument.aperture, aperture_um=instrument.aperture_mm * 1e3,
             aperture_distance_um=instrument.aperture_distance_m * 1e6,
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, cell_um=cell, n_pixel=n_pixel,
-            n_sub=_SUB_CELLS, aperture_cells=aperture_cells, psf_cells=psf_cells,
+            n_sub=_sub_cells(accuracy), aperture_cells=aperture_cells, psf_cells=psf_cells,
             first_cell_um=to_device([per_profile[i][0] - n_pad * cell for i in index]),
             wavelength_A=stack(1), wavelength_weight=stack(2), mu_table_per_m=stack(3),
             att_wavelength_A=stack(4), att_weight=stack(5), att_mu_table_per_m=stack(6)))
