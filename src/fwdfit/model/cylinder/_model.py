@@ -10,15 +10,17 @@ shifted by the aperture point x Delta / (L - Delta): the penumbra, of width
 w = D Delta / (L - Delta), convolves the landings with the aperture's x-marginal.
 
 The rays are a quadrature in b: a uniform grid, and beside every circle a geometric
-grid (1e-5 to 2 µm from it, both sides) for the grazing, totally reflected and just
+grid (1e-5 µm to a few µm from it, both sides) for the grazing, totally reflected and just
 refracted rays whose deflection changes like sqrt(distance to the circle); the two are
-joined by a partition of unity (a cos^2 taper 0.5-2 µm from the circle), so every ray's
+joined by a partition of unity (a cos^2 taper over the last three quarters of the fine grid's
+reach, which spans four steps of the uniform grid, so that the uniform grid resolves it), so every ray's
 weight moves with the radii. Each ray's weight (spectrum weight x exp(-depth) x its
 width in b) is deposited on a grid of sub-pixel cells by cloud-in-cell, minus the
 same ray undeviated and unattenuated (so the open beam, and every ray beyond the sample,
 adds exactly nothing, whatever part of the sample the profile shows); the cells are
 convolved with the penumbra and the detector's Gaussian blur and averaged into pixels.
-T_att is the same with n = 1 (straight chords), on finer wavelength nodes.
+T_att is exp(-sum mu_k chord_k) at each cell's point of the sample plane (n = 1, straight
+chords), on finer wavelength nodes, convolved alike.
 
 Internal units: µm, rad, Å; mu in 1/µm. float64 only (``_rays``).
 """
@@ -36,7 +38,6 @@ from jaxtyping import Array, Float
 from .._aperture import APERTURES
 from ._rays import chords, trace
 
-TAPER_UM = (0.5, 2.0)  # the fine grids carry the rays within the first, the uniform grid beyond the second
 
 
 class CylinderParams(eqx.Module):
@@ -102,6 +103,7 @@ class CylinderModel(eqx.Module):
     fine_d_um: Float[Array, " fine"] = None  # the circles' grids: distances from the circle ...
     fine_weight_um: Float[Array, " fine"] = None  # ... and their quadrature weights x taper
     n_profiles: int = eqx.field(static=True, default=0)
+    taper_um: tuple[float, float] = eqx.field(static=True, default=(0.5, 2.0))  # the fine grids' reach
     tube: bool = eqx.field(static=True, default=False)  # a vacuum core inside the innermost layer
 
     def stacked(self, params: CylinderParams) -> tuple[tuple[Array, Array], ...]:
@@ -173,18 +175,19 @@ def _media(model: CylinderModel, params: CylinderParams, wavelength_A, mu_table_
     return sld, mu
 
 
-def _taper(distance_um):
-    """1 within TAPER_UM[0] of a circle, 0 beyond TAPER_UM[1], cos^2 between."""
-    near, far = TAPER_UM
-    t = jnp.clip((jnp.abs(distance_um) - near) / (far - near), 0.0, 1.0)
-    return jnp.cos(0.5 * jnp.pi * t) ** 2
+def taper(distance_um, taper_um: tuple[float, float]):
+    """1 within taper_um[0] of a circle, 0 beyond taper_um[1], cos^2 between (numpy or jax)."""
+    near, far = taper_um
+    xp = np if isinstance(distance_um, np.ndarray) else jnp
+    t = xp.clip((xp.abs(distance_um) - near) / (far - near), 0.0, 1.0)
+    return xp.cos(0.5 * np.pi * t) ** 2
 
 
 def rays(model: CylinderModel, radii):
     """Impact parameters b (N,) µm >= 0 and their weights (N,) µm: the uniform grid tapered
     off near every circle, and the circles' own grids on both sides."""
     circles = radii[:-1]
-    near = jnp.sum(_taper(model.coarse_b_um[:, None] - circles[None, :]), axis=1)
+    near = jnp.sum(taper(model.coarse_b_um[:, None] - circles[None, :], model.taper_um), axis=1)
     fine_b = jnp.concatenate([(circles[:, None] - model.fine_d_um[None, :]).ravel(),
                               (circles[:, None] + model.fine_d_um[None, :]).ravel()])
     fine_w = jnp.tile(model.fine_weight_um, 2 * circles.shape[0])
@@ -241,13 +244,15 @@ def _profile(group: CylinderGroup, model: CylinderModel, params: CylinderParams,
     landing = jnp.concatenate([(straight + distance_um * eps).ravel(),
                                (magnification * centre - magnification * b - distance_um * eps).ravel()])
     deposit = _deposit(n_cells, first_cell_um, group.cell_um, landing, jnp.concatenate([flux.ravel()] * 2))
+    undeviated = jnp.concatenate([straight, magnification * centre - magnification * b])
+    reference = _deposit(n_cells, first_cell_um, group.cell_um, undeviated, jnp.concatenate([-width] * 2))
+    # T_att at the cells themselves (straight chords through the points the cells see): no
+    # ray quadrature, whose weights near a circle would not cancel as T's do
     att_lam, att_weight, att_table = att_spectrum
     _, att_mu = _media(model, params, att_lam, att_table)
-    attenuated = att_weight @ jnp.exp(-att_mu @ chords(b, radii).T)  # (N,)
-    undeviated = jnp.concatenate([straight, magnification * centre - magnification * b])
-    both = jnp.stack([-width, width * (attenuated - 1.0)], axis=-1)
-    reference = _deposit(n_cells, first_cell_um, group.cell_um, undeviated, jnp.concatenate([both] * 2))
-    change = magnification / group.cell_um * jnp.stack([deposit + reference[:, 0], reference[:, 1]])
+    seen = jnp.abs((first_cell_um + group.cell_um * jnp.arange(n_cells)) / magnification - centre)
+    attenuated = att_weight @ jnp.exp(-att_mu @ chords(seen, radii).T)  # (n_cells,)
+    change = jnp.stack([magnification / group.cell_um * (deposit + reference), attenuated - 1.0])
     kernel = _kernel(group, group.aperture_um * distance_um / (L - distance_um))
     blurred = jax.vmap(lambda cells: jnp.convolve(cells, kernel, mode="valid"))(change)
     T, T_att = 1.0 + blurred.reshape(2, group.n_pixel, group.n_sub).mean(axis=-1)

@@ -4,7 +4,7 @@ wavelength nodes (``build_model``), and the scene's values as parameters (``init
 Sizes, and why (``_nodes``, ``_sub_cells``: measured on the McStas rod): the sub-pixel
 cells are a quarter pixel at the default accuracy (cloud-in-cell deposits are exact to
 second order in the cell, and the rim's peak is a few µm wide); the uniform ray grid
-steps half a cell in the detector plane, so that every cell receives several rays; the
+steps a cell in the detector plane (``_ray_step_cells``); the
 circles' grids are geometric (``_FINE_PER_SIDE`` rays from 1e-5 to 0.1 µm, then uniform
 to the taper's outer end) because a ray's deflection near a circle changes like the square root of its
 distance from it; a free radius or distance is served up to ``_FREE_MARGIN`` beyond its
@@ -24,7 +24,7 @@ from ...scene._limits import check_domain
 from ...scene._scene import Scene
 from ...scene._spectrum import wavelength_quadrature
 from .._arrays import to_device
-from ._model import TAPER_UM, CylinderGroup, CylinderModel, CylinderParams
+from ._model import CylinderGroup, CylinderModel, CylinderParams, taper
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PSF_TRUNCATION_SIGMAS = 5.0
@@ -32,8 +32,9 @@ _FINE_PER_SIDE = 24  # geometric rays on each side of each circle, 1e-5 to 0.1 �
 _FINE_FROM_UM = 1e-5
 _FINE_UNIFORM_UM = 0.1  # ... then uniform, 0.15 µm apart (below a quarter of a 2.4 µm pixel:
 _FINE_STEP_UM = 0.15  # rays sparser than the cells deposit lumps the penumbra does not smooth)
+_TAPER_STEPS = 4.0  # the fine grids reach this many steps of the uniform grid (at least _TAPER_MIN_UM):
+_TAPER_MIN_UM = 2.0  # a taper narrower than the step leaves the weights' sum off (4e-3 in T at mu = 400/m)
 _FREE_MARGIN = 0.3  # a free radius / distance: grids sized this fraction beyond the plan
-_ATT_NODES = 128  # wavelength nodes of T_att (straight chords: cheap)
 
 
 def _nodes(accuracy: float) -> int:
@@ -41,6 +42,19 @@ def _nodes(accuracy: float) -> int:
     are a sharp caustic the penumbra smooths; on the McStas rod 16 nodes differ from 48 by
     3e-6 RMS and from 12 by 1e-5 (BOA white beam, 1.1-34.4 mm)."""
     return int(min(96, max(12, round(16 * math.sqrt(1e-3 / accuracy)))))
+
+
+def _att_nodes(accuracy: float) -> int:
+    """Wavelength nodes of T_att, exp(-mu(lambda) chord) smooth in lambda: 16 differ from 64
+    by 4e-6 on the McStas rod, 8 by 7e-5 (no Bragg edges yet: a table's edges are not split)."""
+    return 16 if accuracy >= 3e-4 else 64
+
+
+def _ray_step_cells(accuracy: float) -> float:
+    """The uniform ray grid's step in the detector plane, in cells: 1 (3e-5 RMS from 0.5 on
+    the McStas rod at 1.1 mm, the rim's peak 0.7 % lower; 2: 6e-5, its peak 1.2 % lower and
+    the loss dip 3 % deeper than McStas); steps that do not divide the pixel alias."""
+    return 1.0 if accuracy >= 3e-4 else 0.5
 
 
 def _sub_cells(accuracy: float) -> int:
@@ -80,14 +94,12 @@ def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
                      for l in scene.sample.layers], axis=-1)
 
 
-def _fine_grid() -> tuple[np.ndarray, np.ndarray]:
-    """Distances d (n,) µm from a circle and their weights (n,) µm, tapered (``TAPER_UM``)."""
+def _fine_grid(taper_um: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Distances d (n,) µm from a circle and their weights (n,) µm, tapered off by ``taper_um``."""
     edges = np.concatenate([[0.0], np.geomspace(_FINE_FROM_UM, _FINE_UNIFORM_UM, _FINE_PER_SIDE),
-                            np.arange(_FINE_UNIFORM_UM, TAPER_UM[1], _FINE_STEP_UM)[1:], [TAPER_UM[1]]])
+                            np.arange(_FINE_UNIFORM_UM, taper_um[1], _FINE_STEP_UM)[1:], [taper_um[1]]])
     d = 0.5 * (edges[1:] + edges[:-1])
-    near, far = TAPER_UM
-    t = np.clip((d - near) / (far - near), 0.0, 1.0)
-    return d, np.diff(edges) * np.cos(0.5 * np.pi * t) ** 2
+    return d, np.diff(edges) * taper(d, taper_um)
 
 
 def build_model(scene: Scene, accuracy: float | None = None, free: Collection[str] = (),
@@ -102,7 +114,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     sample = scene.sample
     free = set(free)
     grow = 1.0 + (_FREE_MARGIN if "sample.outer_radius_um" in free else 0.0)
-    b_max = sample.outer_radius_um * grow + TAPER_UM[1] + 1.0
+    b_max = sample.outer_radius_um * grow + 1.0
     wide = any(name.startswith("profiles.") and name.endswith(".distance_mm") for name in free)
     plans: dict[tuple, list[int]] = {}
     per_profile, pads, steps = [], {}, []
@@ -121,16 +133,18 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         sigma = instrument.psf_fwhm_um / _FWHM_PER_SIGMA
         psf_cells = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / cell) if sigma > 0 else 0
         lam, weight = wavelength_quadrature(spectrum, _nodes(accuracy))
-        att_lam, att_weight = wavelength_quadrature(spectrum, _ATT_NODES)
-        key = (profile.instrument, len(x), len(lam), len(att_lam))
+        att_lam, att_weight = wavelength_quadrature(spectrum, _att_nodes(accuracy))
+        # profiles alike share one vmapped program (an image's rows); others run apart, since
+        # a vmapped deposit is slower than separate ones (37 against 14 ms for the McStas rod)
+        key = (profile.instrument, len(x), len(lam), len(att_lam), aperture_cells, psf_cells)
         plans.setdefault(key, []).append(i)
         pads[i] = (aperture_cells, psf_cells)
         first = x[0] - 0.5 * instrument.pixel_um + 0.5 * cell
         per_profile.append((first, lam, weight, _mu_tables(scene, lam), att_lam, att_weight,
                             _mu_tables(scene, att_lam)))
-        steps.append(0.5 * cell * (L - 1e3 * profile.distance_mm) / L)
+        steps.append(_ray_step_cells(accuracy) * cell * (L - 1e3 * profile.distance_mm) / L)
     groups = []
-    for (name, n_pixel, _, _), index in plans.items():
+    for (name, n_pixel, *_), index in plans.items():
         instrument = scene.instruments[name]
         cell = instrument.pixel_um / _sub_cells(accuracy)
         aperture_cells = max(pads[i][0] for i in index)
@@ -146,8 +160,10 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             wavelength_A=stack(1), wavelength_weight=stack(2), mu_table_per_m=stack(3),
             att_wavelength_A=stack(4), att_weight=stack(5), att_mu_table_per_m=stack(6)))
     step = min(steps)
-    coarse = (np.arange(math.ceil(b_max / step)) + 0.5) * step
-    fine_d, fine_w = _fine_grid()
+    reach = max(_TAPER_MIN_UM, _TAPER_STEPS * step)
+    taper_um = (0.25 * reach, reach)
+    coarse = (np.arange(math.ceil((b_max + reach) / step)) + 0.5) * step
+    fine_d, fine_w = _fine_grid(taper_um)
     return CylinderModel(groups=tuple(groups), coarse_b_um=to_device(coarse), coarse_step_um=step,
                          fine_d_um=to_device(fine_d), fine_weight_um=to_device(fine_w),
-                         n_profiles=len(scene.profiles), tube=sample.core == "vacuum")
+                         n_profiles=len(scene.profiles), taper_um=taper_um, tube=sample.core == "vacuum")
