@@ -30,6 +30,7 @@ BENCHMARKS = {
     "image_rows": "fit-image: rows per second (750-pixel rows) and accuracy on a curved edge",
     "image_series": "fit-images: images per second, serial against a local Dask cluster",
     "sampler": "NUTS posterior sampling: effective samples per second, the oxide's SLD valley",
+    "cylinder_cost": "a rod's model against a block's: plan, compile, evaluation and Jacobian time",
 }
 
 
