@@ -234,3 +234,26 @@ def test_cli_simulate_and_fit(tmp_path):
     assert fitted.sample.outer_radius_um == pytest.approx(300.0, abs=1.0)
     assert fitted.sample.layers[0].thickness_um == pytest.approx(30.0, abs=1.0)
     assert fitted.sample.layers[1].thickness_um == pytest.approx(270.0, abs=2.0)  # the core: the rest
+
+
+def test_missing_shell_is_rejected_and_narrow_window_refused(tmp_path):
+    """A rod scene without the shell the data have fails the quality gate (exit 3 of
+    ``fwdfit fit``); a window that shows no rim, with the radius left to the fit, is refused
+    in one line."""
+    from fwdfit.cli import main
+    files = _noisy_data(tmp_path)
+    fit = '[fit]\nvary = ["sample.outer_radius_um", "sample.centre_um", "layers.Al.sld_e6_per_A2"]\n'
+    (tmp_path / "bare.toml").write_text(_scene_text(ROD, files=files, fit=fit))
+    assert main(["fit", str(tmp_path / "bare.toml"), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    narrow = _scene_text(ROD, half_window=120.0, fit=fit).replace("outer_radius_um = 300.0\n", "")
+    with pytest.raises(fwdfit.FwdfitError) as error:
+        scene = _load(tmp_path, narrow)
+        truth = _load(tmp_path, _scene_text(ROD, half_window=120.0), "narrow_truth.toml")
+        names = []
+        for p in fwdfit.simulate(truth):
+            np.savetxt(tmp_path / f"n_{p.name}.csv", np.column_stack([p.x_um, p.T, np.full_like(p.T, 2e-3)]),
+                       delimiter=",", header="x_um,T,T_err", comments="", fmt="%.8f")
+            names.append(f"n_{p.name}.csv")
+        scene = _load(tmp_path, _scene_text(ROD, files=names, fit=fit).replace("outer_radius_um = 300.0\n", ""))
+        fwdfit.fit(scene)
+    assert "both rims" in str(error.value) and "\n" not in str(error.value)

@@ -66,6 +66,12 @@ def _rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float, float
     inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
     if len(inside) < 2 or inside[0] < n_open or inside[-1] >= len(s) - n_open:
         return None
+    # the ends must be open beam: flat within their noise (inside a sample the chord changes)
+    pixel_noise = float(np.std(np.diff(T))) / math.sqrt(2.0)
+    half = n_open // 2
+    for end in (np.asarray(T[:n_open], float), np.asarray(T[-n_open:], float)):
+        if abs(end[:half].mean() - end[half:].mean()) > 4.0 * pixel_noise / math.sqrt(half) + 1e-5:
+            return None
     return float(x[inside[0]]), float(x[inside[-1]]), level
 
 
