@@ -36,6 +36,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._aperture import APERTURES
+from .._grouped import GroupedModel
 from ._rays import chords, trace
 
 
@@ -90,19 +91,18 @@ class CylinderGroup(eqx.Module):
         return self.aperture_cells + self.psf_cells
 
 
-class CylinderModel(eqx.Module):
+class CylinderModel(GroupedModel):
     """Predicts (T, T_att) for every profile of a cylinder scene; build it with ``build_model``.
 
-    The same faces as the block's ``ForwardModel`` (``groups``, ``stacked``, ``grouped``,
-    ``flat``, ``scene_order``, ``__call__``), so that the predictor compiles it alike.
-    """
+    The faces of every geometry's model (``_grouped.GroupedModel``), so that the predictor
+    compiles it as the block's."""
 
     groups: tuple[CylinderGroup, ...]
     coarse_b_um: Float[Array, " coarse"]  # the uniform grid's impact parameters (midpoints)
     coarse_step_um: float = eqx.field(static=True)
+    n_profiles: int = eqx.field(static=True)
     fine_d_um: Float[Array, " fine"] = None  # the circles' grids: distances from the circle ...
     fine_weight_um: Float[Array, " fine"] = None  # ... and their quadrature weights x taper
-    n_profiles: int = eqx.field(static=True, default=0)
     taper_um: tuple[float, float] = eqx.field(static=True, default=(0.5, 2.0))  # the fine grids' reach
     tube: bool = eqx.field(static=True, default=False)  # a vacuum core inside the innermost layer
 
@@ -117,43 +117,9 @@ class CylinderModel(eqx.Module):
             out.append(jax.vmap(lambda *a: _profile(group, self, params, *a))(*args))
         return tuple(out)
 
-    def grouped(self, params: CylinderParams, norm=None, background=None) -> tuple[tuple[Array, Array], ...]:
-        """(T, T_att) per group, each (n_group_profiles * n_pixel,), ``norm * T + background``
-        when given (per profile of the scene)."""
-        out = []
-        for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
-            index = np.asarray(group.index)
-            n = 1.0 if norm is None else norm[index][:, None]
-            b = 0.0 if background is None else background[index][:, None]
-            out.append(((n * T_g + b).ravel(), (n * T_att_g + b).ravel()))
-        return tuple(out)
-
-    def flat(self, params: CylinderParams, norm=None, background=None) -> tuple[Array, Array]:
-        """(T, T_att) of every profile's pixels concatenated in scene order (n_pixel_total,)."""
-        parts = self.grouped(params, norm, background)
-        T, T_att = (jnp.concatenate([part[k] for part in parts]) for k in (0, 1))
-        order = self.scene_order
-        return (T, T_att) if order is None else (T[order], T_att[order])
-
-    @property
-    def scene_order(self) -> np.ndarray | None:
-        """Static gather from group order to scene order of the flat pixels; None if the same."""
-        starts, sizes, position = {}, {}, 0
-        for group in self.groups:
-            for i in group.index:
-                starts[i], sizes[i] = position, group.n_pixel
-                position += group.n_pixel
-        order = np.concatenate([np.arange(starts[i], starts[i] + sizes[i]) for i in range(self.n_profiles)])
-        return None if np.array_equal(order, np.arange(position)) else order
-
-    def __call__(self, params: CylinderParams) -> tuple[list[Array], list[Array]]:
-        """Pixel-averaged T and T_att, one array (n_pixel,) per profile, in scene order."""
-        T: list = [None] * self.n_profiles
-        T_att: list = [None] * self.n_profiles
-        for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
-            for row, i in enumerate(group.index):
-                T[i], T_att[i] = T_g[row], T_att_g[row]
-        return T, T_att
+    @staticmethod
+    def group_pixels(group) -> int:
+        return group.n_pixel
 
 
 def radii_um(model: CylinderModel, params: CylinderParams):

@@ -23,7 +23,7 @@ from ...scene import _registry as registry
 from ...scene._limits import check_domain
 from ...scene._scene import Scene
 from ...scene._spectrum import wavelength_quadrature
-from .._arrays import to_device
+from .._arrays import check_pixels, mu_tables, to_device
 from ._model import CylinderGroup, CylinderModel, CylinderParams, taper
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -88,12 +88,6 @@ def initial_params(scene: Scene, dtype=None) -> CylinderParams:
     )
 
 
-def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
-    """Tabulated attenuation (n_lam, n_layer) 1/m (0 without a material table)."""
-    return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
-                     for l in scene.sample.layers], axis=-1)
-
-
 def _fine_grid(taper_um: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """Distances d (n,) µm from a circle and their weights (n,) µm, tapered off by ``taper_um``."""
     edges = np.concatenate([[0.0], np.geomspace(_FINE_FROM_UM, _FINE_UNIFORM_UM, _FINE_PER_SIDE),
@@ -122,9 +116,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         instrument = scene.instruments[profile.instrument]
         spectrum = scene.spectra[profile.spectrum]
         x = np.asarray(profile.x_um, float)
-        if np.max(np.abs(np.diff(x) - instrument.pixel_um)) > 1e-3 * instrument.pixel_um:
-            raise FwdfitError(f"profile {profile.name!r}: x_um must be spaced by the instrument's pixel_um = "
-                              f"{instrument.pixel_um}")
+        check_pixels(x, instrument.pixel_um, f"profile {profile.name!r}")
         cell = instrument.pixel_um / _sub_cells(accuracy)
         L = instrument.aperture_distance_m * 1e6
         delta = 1e3 * profile.distance_mm * (1.0 + (_FREE_MARGIN if wide else 0.0))
@@ -140,8 +132,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         plans.setdefault(key, []).append(i)
         pads[i] = (aperture_cells, psf_cells)
         first = x[0] - 0.5 * instrument.pixel_um + 0.5 * cell
-        per_profile.append((first, lam, weight, _mu_tables(scene, lam), att_lam, att_weight,
-                            _mu_tables(scene, att_lam)))
+        per_profile.append((first, lam, weight, mu_tables(scene, lam), att_lam, att_weight,
+                            mu_tables(scene, att_lam)))
         steps.append(_ray_step_cells(accuracy) * cell * (L - 1e3 * profile.distance_mm) / L)
     groups = []
     for (name, n_pixel, *_), index in plans.items():
