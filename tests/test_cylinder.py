@@ -257,3 +257,17 @@ def test_missing_shell_is_rejected_and_narrow_window_refused(tmp_path):
         scene = _load(tmp_path, _scene_text(ROD, files=names, fit=fit).replace("outer_radius_um = 300.0\n", ""))
         fwdfit.fit(scene)
     assert "both rims" in str(error.value) and "\n" not in str(error.value)
+
+
+def test_detector_blur(tmp_path):
+    """A Gaussian blur of the detector: T with psf_fwhm_um = 7.2 is T without it convolved
+    with that Gaussian (pixel-sampled), and the blur moves no neutrons."""
+    sharp = _load(tmp_path, _scene_text(SHELL_ROD, distances=(5.0,)), "sharp.toml")
+    blurred = _load(tmp_path, _scene_text(SHELL_ROD, distances=(5.0,), psf=7.2), "blurred.toml")
+    (a,), (b,) = fwdfit.simulate(sharp), fwdfit.simulate(blurred)
+    sigma_px = 7.2 / (2 * math.sqrt(2 * math.log(2))) / 2.4
+    k = np.arange(-12, 13)
+    gauss = np.exp(-0.5 * (k / sigma_px) ** 2)
+    expected = 1.0 + np.convolve(a.T - 1.0, gauss / gauss.sum(), mode="same")
+    assert rms(b.T - expected) < 3e-4  # pixel sampling of a Gaussian 1.3 pixels wide
+    assert abs(np.sum(b.T - a.T)) * 2.4 < 1e-3
