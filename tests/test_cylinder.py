@@ -142,6 +142,9 @@ def test_keys_round_trip(tmp_path):
     (lambda t: t.replace("outer_radius_um = 300.0\n", ""), "outer_radius_um"),
     (lambda t: t.replace('name = "Al"', 'name = "Al"\nthickness_um = 100.0'), "rest of the radius"),
     (lambda t: t.replace('geometry = "cylinder"', 'geometry = "cylinder"\ncore = "air"'), "core"),
+    (lambda t: t.replace("fresnel = false", "fresnel = true"), "Fresnel"),
+    (lambda t: t.replace('geometry = "cylinder"', 'geometry = "sphere"'), "geometry"),
+    (lambda t: t.replace("distance_mm = 2.0", "distance_mm = 0.2"), "inside the sample"),
 ])
 def test_bad_input_refused_in_one_line(tmp_path, change, message):
     text = change(_scene_text(SHELL_ROD))
