@@ -274,3 +274,25 @@ def test_detector_blur(tmp_path):
     expected = 1.0 + np.convolve(a.T - 1.0, gauss / gauss.sum(), mode="same")
     assert rms(b.T - expected) < 3e-4  # pixel sampling of a Gaussian 1.3 pixels wide
     assert abs(np.sum(b.T - a.T)) * 2.4 < 1e-3
+
+
+def test_fit_one_rim_in_view(tmp_path):
+    """A window that shows one rim only (x from 150 to 450 µm): with the radius given, the
+    centre and the shell are fitted from a user's guess (issue 41, item 4: part of a sample)."""
+    truth = _load(tmp_path, _scene_text(SHELL_ROD, centre=12.0), "truth.toml")
+    rng = np.random.default_rng(7)
+    files = []
+    for p in fwdfit.simulate(truth):
+        keep = p.x_um > 150.0
+        T = p.T[keep] + 2e-3 * rng.standard_normal(keep.sum())
+        np.savetxt(tmp_path / f"{p.name}.csv", np.column_stack([p.x_um[keep], T, np.full_like(T, 2e-3)]),
+                   delimiter=",", header="x_um,T,T_err", comments="", fmt="%.8f")
+        files.append(f"{p.name}.csv")
+    fit = ('[fit]\nvary = ["sample.centre_um", "layers.oxide.thickness_um", "layers.oxide.sld_e6_per_A2"]\n')
+    guess = SHELL_ROD.replace("thickness_um = 30.0\nsld_e6_per_A2 = 5.0", "thickness_um = 25.0\nsld_e6_per_A2 = 4.0")
+    result = fwdfit.fit(_load(tmp_path, _scene_text(guess, centre=5.0, files=files, fit=fit)))
+    values = dict(zip(result.names, result.values))
+    assert values["sample.centre_um"] == pytest.approx(12.0, abs=1.0)
+    assert values["layers.oxide.thickness_um"] == pytest.approx(30.0, abs=1.0)
+    assert values["layers.oxide.sld_e6_per_A2"] == pytest.approx(5.0, rel=0.05)
+    assert 0.8 <= result.chi2 / result.dof <= 1.3
