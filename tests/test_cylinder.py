@@ -296,3 +296,10 @@ def test_fit_one_rim_in_view(tmp_path):
     assert values["layers.oxide.thickness_um"] == pytest.approx(30.0, abs=1.0)
     assert values["layers.oxide.sld_e6_per_A2"] == pytest.approx(5.0, rel=0.05)
     assert 0.8 <= result.chi2 / result.dof <= 1.3
+
+
+def test_float32_refused(tmp_path, float32):
+    """The deflection pi - 2 S cancels O(1) terms: the cylinder's model needs float64."""
+    scene = _load(tmp_path, _scene_text(SHELL_ROD))
+    with pytest.raises(fwdfit.FwdfitError, match="float64"):
+        fwdfit.simulate(scene)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Collection
 
+import jax
 import numpy as np
 
 from ..._errors import FwdfitError
@@ -104,6 +105,9 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     parameter names that may change (a free radius or distance widens the static grids);
     tilt_range_deg: unused (a cylinder has no tilt).
     """
+    if not jax.config.jax_enable_x64:  # eps = pi - 2 S cancels O(1) terms (``_rays``)
+        raise FwdfitError("a cylinder's model needs float64: call jax.config.update('jax_enable_x64', True) "
+                          "first (the fwdfit command does)")
     accuracy = scene.accuracy if accuracy is None else check_domain("accuracy", accuracy, "accuracy")
     sample = scene.sample
     free = set(free)
