@@ -32,6 +32,7 @@ BENCHMARKS = {
     "sampler": "NUTS posterior sampling: effective samples per second, the oxide's SLD valley",
     "compile_cost": "the example's programs: graph size, compile and evaluation time, forward and Jacobian",
     "design_oxide": "fwdfit design's plan against the paper's distances on the oxide, tracer data",
+    "cylinder_cost": "a rod's model against a block's: plan, compile, evaluation and Jacobian time",
 }
 
 

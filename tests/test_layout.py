@@ -27,6 +27,7 @@ RANKS = {
     "model": 3,  # shared kernel and aperture
     "paganin": 3,  # phase retrieval from a scene's layer
     "model.block": 4,  # one folder per geometry
+    "model.cylinder": 4,
     "inference": 5,  # free parameters, starts, search, solver, objective, predictor, gate, fitter, sampler
     "outputs": 6,  # a fit's files
     "images": 7,  # TIFF stacks to profiles, image fits and series

@@ -11,7 +11,8 @@ higher one nor a sibling of its rank, and no import loops (tests/test_layout.py)
 1 io/ (tables, time-of-flight readers); 1 reference/ (the exact tracer)
 2 scene/ (values, the TOML reader and writer, registry, limits, materials, spectra)
 3 model/ (the shared kernel and aperture); 3 paganin/ (phase retrieval)
-4 model/block/ (the layered block's plan, model and thin layers; one folder per geometry)
+4 model/block/ (the layered block's plan, model and thin layers; one folder per geometry);
+  4 model/cylinder/ (concentric shells: rods and tubes)
 5 inference/ (free parameters, starts, search, solver, objective, predictor and cache,
   uncertainty, quality gate, fitter, sampler, simulate)
 6 outputs/ (a fit's files)

@@ -35,7 +35,7 @@ from .._progress import Progress, as_progress
 from ._quality import Quality, assess
 from ..scene._scene import ERRORS_ESTIMATE, Scene, load_scene
 from ._search import global_search
-from ._starts import SLD_VALUE_MAX, noise_sigma
+from ._starts import noise_sigma
 from ._uncertainty import band, central_differences, covariance, errors_and_correlation
 
 _SEARCH_SMOOTHING_UM = 4.0  # Gaussian sigma of model and data in the global scan
@@ -137,31 +137,6 @@ def _data(scene: Scene):
     return [p.T for p in scene.profiles], sigmas, from_data
 
 
-def _plan_scene(scene: Scene, free: tuple[FreeParameter, ...]) -> Scene:
-    """The scene the model's static plan is built from, missing start values filled: an
-    unknown SLD at the largest value the global scan tries (kernel windows are sized for
-    it; the plan's margin for free parameters covers the scan's factors on a known one),
-    an unknown thickness at 0 (not a coupled thin layer)."""
-    layers = list(scene.sample.layers)
-    for p in free:
-        field, index = p.target
-        for i in index if field in LAYER_FIELDS else ():
-            value = getattr(layers[i], field)
-            if field == "sld_e6_per_A2":
-                value = SLD_VALUE_MAX if math.isnan(value) else value
-            elif field == "thickness_um" and math.isnan(value):
-                value = 0.0  # unknown: planned with independent faces (``_plan.thin_layers``)
-            elif math.isnan(value):
-                value = 1.0
-            layers[i] = dataclasses.replace(layers[i], **{field: value})
-    sample = scene.sample
-    if math.isnan(sample.tilt_deg):
-        sample = dataclasses.replace(sample, tilt_deg=0.0)
-    if math.isnan(sample.centre_um):
-        sample = dataclasses.replace(sample, centre_um=0.0)
-    return dataclasses.replace(scene, sample=dataclasses.replace(sample, layers=tuple(layers)))
-
-
 def _step_printer(say: Progress):
     def show(step, chi2):
         finite = chi2[np.isfinite(chi2)]
@@ -207,8 +182,8 @@ class Fitter:
         self.free = free_parameters(scene, vary, bounds)
         self._data = _data(scene)
         tilt = next((p for p in self.free if p.name == "sample.tilt_deg"), None)
-        plan_scene = _plan_scene(scene, self.free)
         self.geometry = geometry_of(scene) if geometry is None else geometry
+        plan_scene = self.geometry.plan_scene(scene, self.free)
         self.geometry.check_data(scene, self._data[0])
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ModelWarning)

@@ -1,59 +1,56 @@
-"""The sample's shape behind one seam: what the fitter, the quality gate and the outputs ask of it.
+"""The geometries a scene may name, behind one seam (``model._geometry.Geometry``).
 
-A geometry turns a scene into its forward model, refuses measured profiles it cannot
-read starts off, reads starting values off measured profiles, moves a candidate to a
-trial tilt for the global scan, and says where its interfaces land on each profile (the
-quality gate's edge regions). The layered block
-(flat layers side by side along x, tilted about the vertical axis: ``_plan``/``_model``,
-``_starts``, the exact tracer ``_reference``) is the one geometry today. A second shape
-(concentric cylinder shells, say) implements the same five methods in its own modules and
-is returned by ``geometry_of`` for its scenes; the fitter, the scene reader's generic
-parts, the objective and the outputs stay as they are.
+``geometry_of`` picks a scene's shape by its ``[sample] geometry``; a new shape
+implements the protocol in its own folder of ``model/`` and is one entry of
+``GEOMETRIES``. The layered block (flat layers side by side along x, tilted about the
+vertical axis: ``model/block``, the starts of ``_starts``) is implemented here, since
+its starts sit in ``inference/``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Collection
-from typing import Protocol
 
 import numpy as np
 
-from ..model.block._model import ForwardModel
-from ._parameters import FreeParameter
-from ..model.block._plan import build_model
-from ._quality import edge_half_width_um
-from ..scene._scene import Profile, Scene
-from ._starts import Estimate, estimate, narrow_profiles
-
-
-class Geometry(Protocol):
-    """What a sample shape provides to the fit (see the module docstring)."""
-
-    def build_model(self, scene: Scene, accuracy: float | None, free: Collection[str],
-                    tilt_range_deg: tuple[float, float] | None) -> ForwardModel:
-        """The forward model of the scene, free parameters ``free`` traced."""
-
-    def estimate(self, scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
-                 model: ForwardModel) -> Estimate:
-        """Starting values read off the measured profiles T (one array per profile)."""
-
-    def check_data(self, scene: Scene, T: list[np.ndarray]) -> None:
-        """Refuse, with FwdfitError, measured profiles T whose starts ``estimate`` cannot read
-        (called before the model compiles)."""
-
-    def at_tilts(self, free: tuple[FreeParameter, ...], estimate: Estimate, row: np.ndarray,
-                 tilts_deg: np.ndarray) -> np.ndarray:
-        """Rows (m, n_free): ``row`` (n_free,) at each trial tilt, with what the data pin
-        at that tilt (e.g. projected widths) kept."""
-
-    def interfaces(self, scene: Scene, profile: Profile) -> tuple[list[tuple[float, float, str]], float]:
-        """Where each interface lands on the profile, (x_from_um, x_to_um, label) each,
-        and the half width (µm) of the region its refraction spreads over."""
+from ..model._geometry import Geometry as Geometry
+from ..model._geometry import edge_half_width_um
+from ..model.block._plan import build_model, initial_params
+from ..model.cylinder import Cylinder
+from ..scene import _registry as registry
+from ._starts import SLD_VALUE_MAX, estimate, narrow_profiles
 
 
 class LayeredBlock:
     """Flat layers side by side along x, depth along the beam, tilted about the vertical axis."""
+
+    def initial_params(self, scene, dtype=None):
+        return initial_params(scene, dtype)
+
+    def plan_scene(self, scene, free):
+        """Missing start values filled: an unknown SLD at the largest value the global scan
+        tries (kernel windows are sized for it; the plan's margin for free parameters covers
+        the scan's factors on a known one), an unknown thickness at 0 (not a coupled thin
+        layer), any other at 1; an unknown tilt and centre at 0."""
+        layers = list(scene.sample.layers)
+        for p in free:
+            field, index = p.target
+            for i in index if registry.BY_KEY[field].part == "layers" else ():
+                value = getattr(layers[i], field)
+                if field == "sld_e6_per_A2":
+                    value = SLD_VALUE_MAX if math.isnan(value) else value
+                elif field == "thickness_um" and math.isnan(value):
+                    value = 0.0  # unknown: planned with independent faces (``_plan.thin_layers``)
+                elif math.isnan(value):
+                    value = 1.0
+                layers[i] = dataclasses.replace(layers[i], **{field: value})
+        sample = scene.sample
+        if math.isnan(sample.tilt_deg):
+            sample = dataclasses.replace(sample, tilt_deg=0.0)
+        if math.isnan(sample.centre_um):
+            sample = dataclasses.replace(sample, centre_um=0.0)
+        return dataclasses.replace(scene, sample=dataclasses.replace(sample, layers=tuple(layers)))
 
     def build_model(self, scene, accuracy, free, tilt_range_deg):
         return build_model(scene, accuracy, free=free, tilt_range_deg=tilt_range_deg)
@@ -92,6 +89,9 @@ class LayeredBlock:
         return faces, edge_half_width_um(profile.distance_mm, penumbra, instrument.psf_fwhm_um, spread)
 
 
-def geometry_of(scene: Scene) -> Geometry:
-    """The geometry of a scene (the layered block: the one shape a scene describes today)."""
-    return LayeredBlock()
+GEOMETRIES = {"block": LayeredBlock, "cylinder": Cylinder}  # a scene's [sample] geometry -> its shape
+
+
+def geometry_of(scene) -> Geometry:
+    """The geometry of a scene (its ``[sample] geometry``; the layered block by default)."""
+    return GEOMETRIES[getattr(scene.sample, "geometry", "block")]()

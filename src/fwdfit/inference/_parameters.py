@@ -26,7 +26,8 @@ import numpy as np
 
 from ..scene import _registry as registry
 from .._errors import FwdfitError
-from ..model.block import ModelParams, initial_params, layer_value, to_device
+from ..model._arrays import to_device
+from ._geometry import geometry_of
 from ..scene._limits import MAX_TILT_DEG
 from ..scene._scene import Scene
 
@@ -112,6 +113,9 @@ def _resolve(scene: Scene, name: str) -> list[tuple[str, str, tuple, tuple, floa
     """(canonical name, key, field target, default bounds, step) for one ``vary`` entry."""
     parts = name.split(".")
     quantity = registry.BY_KEY.get(parts[-1])
+    geometry = scene.sample.geometry
+    if quantity is not None and quantity.part == parts[0] and geometry not in quantity.geometries:
+        raise FwdfitError(f"{scene.path}: fit.vary: {name!r}: a {geometry} has no {parts[-1]}")
     part = None if quantity is None or quantity.part != parts[0] else quantity.part
     key, bounds, step = parts[-1], *((quantity.bounds, quantity.step) if part else ((), 0.0))
     layers = {layer.name: layer for layer in scene.sample.layers}
@@ -136,7 +140,7 @@ def _scene_value(scene: Scene, key: str, target: tuple) -> float:
     _, index = target
     part = registry.BY_KEY[key].part
     if part == "layers":
-        return layer_value(scene.sample.layers[index[0]], key)
+        return registry.layer_value(scene.sample.layers[index[0]], key)
     if part == "profiles":
         return getattr(scene.profiles[index[0]], key)
     return getattr(scene.sample, key)
@@ -184,9 +188,13 @@ def free_parameters(scene: Scene, vary=None, bounds=None) -> tuple[FreeParameter
 
 
 class Assembler(eqx.Module):
-    """Physical values (n_free,) -> (ModelParams, norm (n_profile,), background (n_profile,))."""
+    """Physical values (n_free,) -> (model parameters, norm (n_profile,), background (n_profile,)).
 
-    base: ModelParams
+    base: the geometry's parameters at the scene's values (``Geometry.initial_params``), a
+    Module with a field per registry key that the model takes, and ``distance_mm`` and
+    ``shift_um`` per profile."""
+
+    base: eqx.Module
     profile_shift_um: jax.Array
     drift_um_per_mm: jax.Array
     norm: jax.Array
@@ -194,7 +202,7 @@ class Assembler(eqx.Module):
     targets: tuple = eqx.field(static=True)
 
     def __call__(self, values):
-        fields = {f.name: getattr(self.base, f.name) for f in dataclasses.fields(ModelParams)}
+        fields = {f.name: getattr(self.base, f.name) for f in dataclasses.fields(self.base)}
         extra = {"shift_um": self.profile_shift_um, "drift_um_per_mm": self.drift_um_per_mm,
                  "norm": self.norm, "background": self.background}
         for field, (scalar, positions, indices) in _by_field(self.targets).items():
@@ -204,7 +212,7 @@ class Assembler(eqx.Module):
             if positions:  # one gather and one scatter per field, however many profiles
                 store[field] = store[field].at[np.asarray(indices)].set(values[np.asarray(positions)])
         fields["shift_um"] = extra["shift_um"] + extra["drift_um_per_mm"] * fields["distance_mm"]
-        return ModelParams(**fields), extra["norm"], extra["background"]
+        return type(self.base)(**fields), extra["norm"], extra["background"]
 
 
 def _by_field(targets: tuple) -> dict[str, tuple[int | None, list[int], list[int]]]:
@@ -220,10 +228,11 @@ def _by_field(targets: tuple) -> dict[str, tuple[int | None, list[int], list[int
 
 
 def assembler(scene: Scene, free: tuple[FreeParameter, ...], dtype=None) -> Assembler:
-    """The map from free values to model inputs, with every other value from the scene."""
+    """The map from free values to model inputs, with every other value from the scene
+    (its geometry's parameters, ``Geometry.initial_params``)."""
     as_array = lambda values: to_device(values, dtype)
     return Assembler(
-        base=initial_params(scene, dtype),
+        base=geometry_of(scene).initial_params(scene, dtype),
         profile_shift_um=as_array([p.shift_um for p in scene.profiles]),
         drift_um_per_mm=as_array(scene.sample.drift_um_per_mm),
         norm=as_array([p.norm for p in scene.profiles]),

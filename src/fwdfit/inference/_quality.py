@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from ..model._geometry import edge_half_width_um as edge_half_width_um
+
 SIGNIFICANCE = 5.0  # standard deviations of the noise expectation
 _LIMIT_OVERALL = 1.5  # reduced chi-square above which the whole fit fails (when significant)
 _LIMIT_PROFILE = 2.0
@@ -25,8 +27,6 @@ _LIMIT_REGION = 3.0
 _MIN_BROAD_PIXELS = 30  # chi-square alone fails a region of at least this many pixels
 _WINDOW_PIXELS = (16, 64)  # sliding windows inside each region: a local misfit is not diluted
 _WINDOW_SIGNIFICANCE = 6.0  # ... judged at this significance (of order 100 windows per profile)
-_MIN_EDGE_HALF_WIDTH_UM = 15.0
-_FRINGE_ANGLE_RAD = 3e-3  # reach of the refraction fringes: this angle times the distance
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,12 +98,6 @@ def runs_z(signs: np.ndarray) -> float:
 def _region(profile: str, what: str, x, z) -> Region:
     return Region(profile, what, float(x[0]), float(x[-1]), len(z), float(np.sum(z * z)),
                   float(np.sum(z) / math.sqrt(max(len(z), 1))), runs_z(np.sign(z)))
-
-
-def edge_half_width_um(distance_mm: float, penumbra_um: float, psf_fwhm_um: float, tilt_spread_um: float) -> float:
-    """Half-width (µm) of the region around an interface where its refraction fringes lie."""
-    return max(_MIN_EDGE_HALF_WIDTH_UM,
-               0.5 * penumbra_um + _FRINGE_ANGLE_RAD * distance_mm * 1e3 + psf_fwhm_um + tilt_spread_um)
 
 
 def assess(names: list[str], x_um: list[np.ndarray], z: list[np.ndarray],

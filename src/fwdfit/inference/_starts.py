@@ -21,14 +21,13 @@ Units: µm, mm, 1/m, as in the scene keys.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
 from .._errors import FwdfitError
 from ..model.block._model import ForwardModel
-from ._parameters import FreeParameter
+from ..model._geometry import Estimate as Estimate
 from ..scene._scene import Scene
 
 # SLDs the global search (_search) tries where the scene gives none: kept here, below the
@@ -53,17 +52,6 @@ _FALLBACK_MU_PER_M = 10.0  # start of a free attenuation that no plateau shows
 _REACH_MARGIN = 1.25  # the window of the intensity balance at an edge: this much beyond the reach
 _BALANCE_SIGNIFICANCE = 4.0  # balanced edges replace the crossings when the widths differ by this many sigma
 _PINNED_FIELDS = ("centre_um", "shift_um", "drift_um_per_mm", "thickness_um", "norm", "mu_per_m")
-
-
-@dataclasses.dataclass(frozen=True)
-class Estimate:
-    """Starting values from the data, free name -> value (thicknesses at tilt 0: the
-    projected widths; a trial tilt multiplies them by cos(tilt))."""
-
-    values: dict[str, float]
-    thickness_names: tuple[str, ...]  # the free thicknesses among them
-    held_names: tuple[str, ...] = ()  # free thicknesses read off interior steps (not the thickest layer's)
-    pinned_names: tuple[str, ...] = ()  # free positions and plateau levels, which the data pin directly
 
 
 def _smooth(values: np.ndarray, n: int) -> np.ndarray:
@@ -316,7 +304,7 @@ def _wavelengths(model: ForwardModel, index: int):
     raise KeyError(index)
 
 
-def estimate(scene: Scene, free: tuple[FreeParameter, ...], T: list[np.ndarray],
+def estimate(scene: Scene, free: tuple, T: list[np.ndarray],
              model: ForwardModel) -> Estimate:
     """Starting values for the free parameters read off the profiles T (one array per profile).
 

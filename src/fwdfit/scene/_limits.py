@@ -26,6 +26,7 @@ SEE = "see docs/SCENE.md"
 # Closed ranges [low, high] by key name (the last part of a scene key, or an option).
 DOMAIN: dict[str, tuple[float, float]] = {
     "depth_mm": (1e-3, 100.0),
+    "outer_radius_um": (1.0, 5e4),  # a cylinder's radius: 1 µm to 5 cm
     "tilt_deg": (-MAX_TILT_DEG, MAX_TILT_DEG),
     "centre_um": (-1e5, 1e5),
     "drift_um_per_mm": (-100.0, 100.0),

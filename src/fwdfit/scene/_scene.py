@@ -78,7 +78,15 @@ class Sample:
     (a stage or beam-axis misalignment); ``left_roughness_mrad`` is the RMS normal slope of
     the stack's first (left, vacuum | first layer) face, each layer's own is its right-hand face.
     ``rotation_deg``: an image's edge rotated in the image plane, its centre in profile r
-    moved by tan(rotation) * (r - centre profile) * pixel_um (fit-image only)."""
+    moved by tan(rotation) * (r - centre profile) * pixel_um (fit-image only).
+
+    ``geometry``: ``"block"`` (layers side by side along x, ``depth_mm`` along the beam) or
+    ``"cylinder"`` (concentric shells about an axis along the detector's columns at
+    ``centre_um``: the layers from the outside in, the outermost of radius
+    ``outer_radius_um``; ``core = "vacuum"`` a tube, else the innermost layer fills the
+    core, a rod, whose thickness is the rest of the radius). A cylinder's ``depth_mm`` is
+    its diameter (its extent along the beam), its tilt 0.
+    """
 
     depth_mm: float
     tilt_deg: float
@@ -87,6 +95,14 @@ class Sample:
     drift_um_per_mm: float = 0.0
     left_roughness_mrad: float = 0.0
     rotation_deg: float = 0.0
+    geometry: str = "block"
+    outer_radius_um: float = math.nan
+    core: str = ""  # a cylinder's core: "" the innermost layer (a rod), "vacuum" (a tube)
+
+    @property
+    def rod(self) -> bool:
+        """A cylinder whose innermost layer fills the core."""
+        return self.geometry == "cylinder" and self.core != CORE_VACUUM
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,7 +217,8 @@ class Scene:
         return tuple(dict.fromkeys(Path(f) for f in files if f is not None))
 
 
-_SAMPLE_KEYS = {"layers", *registry.part("sample")}
+CORE_VACUUM = "vacuum"
+_SAMPLE_KEYS = {"layers", "geometry", "core", *registry.part("sample")}
 _LAYER_KEYS = {"name", "material", "density_g_cm3", "ncrystal", "same_as", *registry.part("layers")}
 _FROM_DATA = tuple(key for key, q in registry.part("layers").items() if q.from_data)  # a fit may leave them out
 _INSTRUMENT_KEYS = {"aperture", "aperture_mm", "aperture_distance_m", "pixel_um",
@@ -326,15 +343,23 @@ def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instr
                 f"{path}: {'instruments.' + name if name else 'instrument'}.psf_fwhm_um: "
                 f"{instrument.psf_fwhm_um:g} is more than {MAX_PSF_PIXELS:g} pixels of "
                 f"{instrument.pixel_um:g} um ({SEE})")
+    if sample.geometry == "cylinder":
+        for name, instrument in instruments.items():
+            if instrument.fresnel:
+                raise FwdfitError(f"{path}: {'instruments.' + name if name else 'instrument'}.fresnel: a cylinder "
+                                  "has no Fresnel partial reflection in the model yet (set fresnel = false)")
     tilt = math.radians(sample.tilt_deg)
     width_mm = 1e-3 * sum(t for t in (layer.thickness_um for layer in sample.layers) if math.isfinite(t))
     reach = 0.5 * sample.depth_mm + 0.5 * width_mm * abs(math.sin(tilt))
+    if math.isnan(reach):  # a cylinder's radius left to the fit: checked once fitted
+        reach = 0.0
     for index, profile in enumerate(profiles):
         where = f"{path}: profiles[{index}].distance_mm"
         if profile.distance_mm <= reach:
+            needs = ("the outer radius" if sample.geometry == "cylinder"
+                     else "depth_mm / 2 + half the stack's width x |sin(tilt)|")
             raise FwdfitError(f"{where}: {profile.distance_mm:g} puts the detector inside the "
-                              f"sample (needs > {reach:g}: depth_mm / 2 + half the "
-                              f"stack's width x |sin(tilt)|; {SEE})")
+                              f"sample (needs > {reach:g}: {needs}; {SEE})")
         instrument = instruments[profile.instrument]
         to_aperture_mm = 1e3 * instrument.aperture_distance_m - profile.distance_mm - reach
         if not instrument.aperture_mm <= MAX_DIVERGENCE * to_aperture_mm:
@@ -346,28 +371,74 @@ def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instr
 
 def _sample(path: Path, table: Any, vary: tuple[str, ...]) -> Sample:
     reader = _Reader(path, table, "sample", _SAMPLE_KEYS)
+    geometry = reader.string("geometry", "block", choices=registry.GEOMETRIES)
+    _refuse_others(reader, table, geometry, "sample", {"core"} if geometry != "cylinder" else set())
     layers_table = table.get("layers")
     if not isinstance(layers_table, list) or not layers_table:
         reader.fail("sample.layers", "at least one [[sample.layers]] is needed")
     layers: list[Layer] = []
     for index, layer_table in enumerate(layers_table):
-        layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers, vary))
+        layers.append(_layer(path, layer_table, f"sample.layers[{index}]", layers, vary, geometry))
+    if geometry == "cylinder":
+        return _cylinder(reader, tuple(layers), vary)
     return Sample(layers=tuple(layers), **_plain(reader, "sample"))
 
 
-def _plain(reader: _Reader, part: str) -> dict[str, float]:
+def _refuse_others(reader: _Reader, table: dict, geometry: str, part: str, more: set[str] = frozenset()) -> None:
+    """Fail on the first key of ``table`` that the registry keeps for other geometries (or is in ``more``)."""
+    others = {key for key, q in registry.part(part).items() if geometry not in q.geometries} | set(more)
+    refused = sorted(others & set(table))
+    if refused:
+        reader.fail(reader.key(refused[0]), f"a {geometry} does not take this key")
+
+
+def _cylinder(reader: _Reader, layers: tuple[Layer, ...], vary: tuple[str, ...]) -> Sample:
+    """A cylinder's sample: its radius (left out only where fit.vary names it), its core,
+    and a rod's innermost layer filling the rest of the radius."""
+    radius = reader.number("outer_radius_um", math.nan if "sample.outer_radius_um" in vary else None,
+                           positive=True)
+    core = reader.string("core", "", choices=(CORE_VACUUM,))
+    shells = layers if core == CORE_VACUUM else layers[:-1]
+    for index, layer in enumerate(shells):
+        if math.isnan(layer.thickness_um) and f"layers.{layer.same_as or layer.name}.thickness_um" not in vary:
+            reader.fail(f"sample.layers[{index}].thickness_um", "missing")
+    reach = sum(layer.thickness_um for layer in shells)
+    for index, layer in enumerate(shells):
+        if sum(l.thickness_um for l in shells[:index + 1]) > radius:
+            reader.fail(f"sample.layers[{index}].thickness_um", f"the shells reach {reach:g} um in from the "
+                        f"outer radius {radius:g} um: past the axis")
+    if core != CORE_VACUUM:
+        inner, index = layers[-1], len(layers) - 1
+        rest = radius - reach
+        if f"layers.{inner.name}.thickness_um" in vary:
+            reader.fail("fit.vary", f"layers.{inner.name}.thickness_um: the innermost layer of a rod fills the "
+                        "rest of the radius (vary sample.outer_radius_um or the shells' thicknesses)")
+        if not (math.isnan(inner.thickness_um) or math.isclose(inner.thickness_um, rest, rel_tol=1e-9, abs_tol=1e-6)):
+            reader.fail(f"sample.layers[{index}].thickness_um", f"{inner.thickness_um:g}: the innermost layer of "
+                        f"a rod fills the rest of the radius, {rest:g} um (leave the key out)")
+        layers = layers[:-1] + (dataclasses.replace(inner, thickness_um=rest),)
+    return Sample(depth_mm=2e-3 * radius, tilt_deg=0.0, layers=layers, geometry="cylinder",
+                  outer_radius_um=radius, core=core, **_plain(reader, "sample", "cylinder"))
+
+
+def _plain(reader: _Reader, part: str, geometry: str | None = None) -> dict[str, float]:
     """A scene part's fitted quantities that are read as they are (``_registry``: neither a
-    start from the data nor a material's constant), by key."""
+    start from the data nor a material's constant), by key (those ``geometry`` takes)."""
     return {key: reader.number(key, q.default, positive=q.positive)
-            for key, q in registry.part(part).items() if not (q.from_data or q.material)}
+            for key, q in registry.part(part, geometry).items() if not (q.from_data or q.material)}
 
 
-def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple[str, ...] = ()) -> Layer:
+def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple[str, ...] = (),
+           geometry: str = "block") -> Layer:
     """One layer. A value named in ``vary`` may be left out: it is NaN, a start the fit
-    estimates from the data."""
+    estimates from the data (a rod's innermost layer's thickness: the rest of the radius,
+    ``_cylinder``)."""
     reader = _Reader(path, table, where, _LAYER_KEYS)
+    _refuse_others(reader, table, geometry, "layers")
     name = reader.string("name")
     optional = {key for key in _FROM_DATA if f"layers.{name}.{key}" in vary}
+    if geometry == "cylinder":
+        optional.add("thickness_um")  # a rod's innermost layer; _cylinder checks the others
     if any(layer.name == name for layer in earlier):
         reader.fail(reader.key("name"), f"duplicate layer name {name!r}")
     if reader.has("same_as"):
@@ -401,7 +472,7 @@ def _layer(path: Path, table: Any, where: str, earlier: list[Layer], vary: tuple
         mu_per_m_per_A=explicit.get("mu_per_m_per_A", base.mu_per_m_per_A
                                     if "mu_per_m" not in explicit else 0.0),
         material=material,
-        **_plain(reader, "layers"),
+        **_plain(reader, "layers", geometry),
     )
 
 

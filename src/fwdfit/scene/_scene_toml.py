@@ -73,9 +73,13 @@ def _tables(scene: Scene, folder: Path | None) -> list[_Table]:
         return str(file) if folder is None else os.path.relpath(file, folder.resolve())
 
     s = scene.sample
-    tables: list[_Table] = [("[sample]", "sample", _changed(
-        [(key, getattr(s, key)) for key in registry.part("sample")], registry.defaults("sample")))]
-    tables += [("[[sample.layers]]", "sample.layers", _layer(layer)) for layer in s.layers]
+    shape = _changed([("geometry", s.geometry), ("core", s.core)], {"geometry": "block", "core": ""})
+    values = [(key, getattr(s, key)) for key in registry.part("sample", s.geometry)]
+    tables: list[_Table] = [("[sample]", "sample", shape + [
+        (key, value) for key, value in _changed(values, registry.defaults("sample", s.geometry))
+        if not (isinstance(value, float) and math.isnan(value))])]  # NaN: a start left to the fit
+    tables += [("[[sample.layers]]", "sample.layers", _layer(layer, s.geometry, s.rod and i == len(s.layers) - 1))
+               for i, layer in enumerate(s.layers)]
     for name, inst in scene.instruments.items():
         entries = [(key, getattr(inst, key)) for key in
                    ("aperture", "aperture_mm", "aperture_distance_m", "pixel_um", "psf_fwhm_um", "fresnel")]
@@ -106,10 +110,11 @@ def _changed(entries: list[tuple[str, object]], defaults: dict) -> list[tuple[st
     return [(key, value) for key, value in entries if defaults.get(key) is None or value != defaults[key]]
 
 
-def _layer(layer: Layer) -> list[tuple[str, object]]:
-    """A layer's keys: its material's source (formula and density, or NCrystal cfg) and
-    the constants that differ from the material's (they override it); NaN (a start left
-    to the fit) is left out."""
+def _layer(layer: Layer, geometry: str = "block", core: bool = False) -> list[tuple[str, object]]:
+    """A layer's keys (those ``geometry`` takes): its material's source (formula and density,
+    or NCrystal cfg) and the constants that differ from the material's (they override it);
+    NaN (a start left to the fit) is left out, and so is the thickness of a rod's ``core``
+    (the rest of the radius)."""
     if layer.same_as:
         return [("name", layer.name), ("same_as", layer.same_as)]
     entries: list[tuple[str, object]] = [("name", layer.name)]
@@ -120,8 +125,9 @@ def _layer(layer: Layer) -> list[tuple[str, object]]:
         entries += [("material", material.formula), ("density_g_cm3", material.density_g_cm3)]
     else:
         material = None
-    values = [(key, getattr(layer, key)) for key in registry.part("layers")]
-    defaults = registry.defaults("layers") | {"mu_per_m_per_A": None}  # 0 only beside an explicit mu_per_m
+    values = [(key, getattr(layer, key)) for key in registry.part("layers", geometry)
+              if not (core and key == "thickness_um")]
+    defaults = registry.defaults("layers", geometry) | {"mu_per_m_per_A": None}  # 0 only beside an explicit mu_per_m
     if material is not None:  # the reader's defaults: the material's (mu_per_m_per_A: 0 beside a mu_per_m)
         defaults |= {"sld_e6_per_A2": material.sld_e6_per_A2, "mu_per_m": material.mu_per_m}
         if layer.mu_per_m == material.mu_per_m:

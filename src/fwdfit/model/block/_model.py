@@ -33,6 +33,7 @@ from jaxtyping import Array, Float
 
 from . import _thin
 from .._aperture import APERTURES
+from .._grouped import GroupedModel
 from .._kernel import (AngularMass, deflected_and_fresnel_kinks, deflected_cumulative, deflected_kinks, fresnel_kinks,
                       fresnel_transfer, in_plane_frame, landing_range, landing_regions, straight_cumulative,
                       straight_kinks)
@@ -131,7 +132,7 @@ class ProfileGroup(eqx.Module):
     straight_window: int = eqx.field(static=True, default=0)  # ... of the straight rays (0: the whole window)
 
 
-class ForwardModel(eqx.Module):
+class ForwardModel(GroupedModel):
     """Predicts (T, T_att) for every profile of a scene; build it with ``build_model``."""
 
     groups: tuple[ProfileGroup, ...]
@@ -159,47 +160,9 @@ class ForwardModel(eqx.Module):
             out.append((blur_and_bin(T_g), blur_and_bin(T_att_g)))
         return tuple(out)
 
-    def grouped(self, params: ModelParams, norm=None, background=None) -> tuple[tuple[Array, Array], ...]:
-        """(T, T_att) per group, each (n_group_profiles * n_pixel,): the group's profiles in
-        ``group.index`` order, ``norm * T + background`` when given (per profile of the scene,
-        (n_profile,))."""
-        out = []
-        for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
-            index = np.asarray(group.index)
-            n = 1.0 if norm is None else norm[index][:, None]
-            b = 0.0 if background is None else background[index][:, None]
-            out.append(((n * T_g + b).ravel(), (n * T_att_g + b).ravel()))
-        return tuple(out)
-
-    def flat(self, params: ModelParams, norm=None, background=None) -> tuple[Array, Array]:
-        """(T, T_att) of every profile's pixels concatenated in scene order (n_pixel_total,),
-        ``norm * T + background`` when given (per profile, (n_profile,)); one gather, not one
-        op per profile."""
-        parts = self.grouped(params, norm, background)
-        T, T_att = (jnp.concatenate([part[k] for part in parts]) for k in (0, 1))
-        order = self.scene_order
-        return (T, T_att) if order is None else (T[order], T_att[order])
-
-    @property
-    def scene_order(self) -> np.ndarray | None:
-        """Static gather from group order to scene order of the flat pixels; None if the same."""
-        starts, sizes, position = {}, {}, 0
-        for group in self.groups:
-            n_pixel = (group.n_edges - 1 - 2 * group.n_pad) // group.n_sub
-            for i in group.index:
-                starts[i], sizes[i] = position, n_pixel
-                position += n_pixel
-        order = np.concatenate([np.arange(starts[i], starts[i] + sizes[i]) for i in range(self.n_profiles)])
-        return None if np.array_equal(order, np.arange(position)) else order
-
-    def __call__(self, params: ModelParams) -> tuple[list[Array], list[Array]]:
-        """Pixel-averaged T and T_att, one array (n_pixel,) per profile, in scene order."""
-        T: list = [None] * self.n_profiles
-        T_att: list = [None] * self.n_profiles
-        for group, (T_g, T_att_g) in zip(self.groups, self.stacked(params)):
-            for row, i in enumerate(group.index):
-                T[i], T_att[i] = T_g[row], T_att_g[row]
-        return T, T_att
+    @staticmethod
+    def group_pixels(group) -> int:
+        return (group.n_edges - 1 - 2 * group.n_pad) // group.n_sub
 
 
 def _media(params: ModelParams, wavelength_A, mu_table_per_m, graded=(), vanishing=()):

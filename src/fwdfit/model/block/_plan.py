@@ -16,11 +16,14 @@ import warnings
 from collections.abc import Collection
 from typing import NamedTuple
 
-import jax
 import numpy as np
 
 from ...scene import _registry as registry
+from ...scene._registry import layer_value as layer_value
 from ..._errors import FwdfitError, ModelWarning
+from .._arrays import check_pixels as check_pixels
+from .._arrays import mu_tables as _mu_tables
+from .._arrays import to_device as to_device
 from .._kernel import landing_range, landing_regions
 from ...scene._limits import MAX_TILT_DEG, check_domain
 from ._model import ForwardModel, Interface, ModelParams, ProfileGroup, largest_tilt
@@ -167,21 +170,6 @@ def fresnel_nodes(accuracy: float, aperture: str) -> int:
     return max(4, math.ceil(6 * math.sqrt(1e-3 / accuracy)))
 
 
-def to_device(values, dtype=None):
-    """values as a JAX array of ``dtype`` (default float, float32 without x64): a plain
-    transfer, where ``jnp.asarray`` compiles a small program for every new shape (~14 ms
-    each, ~0.2 s of a warm run's plan)."""
-    return jax.device_put(np.asarray(values, dtype=float if dtype is None else dtype))
-
-
-def layer_value(layer, key: str) -> float:
-    """A layer's value of a registry key; a graded layer's right-hand value left out (NaN)
-    is its left-hand one (``Quantity.uniform_from``)."""
-    value = getattr(layer, key)
-    source = registry.BY_KEY[key].uniform_from
-    return getattr(layer, source) if source and math.isnan(value) else value
-
-
 def _graded(scene: Scene, free: Collection[str]) -> tuple[bool, ...]:
     """Per layer: whether its SLD or mu varies across it (an end value given or free)."""
     ends = [key for key, q in registry.part("layers").items() if q.uniform_from]
@@ -220,14 +208,6 @@ def _unit_gauss(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
         return (), ()
     nodes, weights = np.polynomial.legendre.leggauss(n)
     return tuple(float(v) for v in 0.5 * (nodes + 1)), tuple(float(v) for v in 0.5 * weights)
-
-
-def check_pixels(x_um: np.ndarray, pixel_um: float, where: str) -> None:
-    """Measured x_um must be pixel centres on a uniform grid of the instrument's pixel."""
-    steps = np.diff(x_um)
-    if np.max(np.abs(steps - pixel_um)) > 1e-3 * pixel_um:
-        raise FwdfitError(f"{where}: x_um must be spaced by the instrument's pixel_um = {pixel_um} "
-                          f"(found steps {steps.min():.4g} to {steps.max():.4g})")
 
 
 def initial_params(scene: Scene, dtype=None) -> ModelParams:
@@ -429,12 +409,6 @@ def _sub_window_edges(scene: Scene, instrument, spectrum, profile, margin: float
             for side, region in enumerate(landing_regions(a_min, a_max, k, t, xp=np)):
                 widest[side] = max(widest[side], reach_um(*region))
     return tuple(math.ceil(margin * w / bin_um) + 4 for w in widest)
-
-
-def _mu_tables(scene: Scene, lam: np.ndarray) -> np.ndarray:
-    """Tabulated attenuation (n_lam, n_layer) 1/m of every layer at wavelengths lam (0 without a table)."""
-    return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
-                     for l in scene.sample.layers], axis=-1)
 
 
 def bragg_breaks_A(scene: Scene, accuracy: float) -> tuple[float, ...]:

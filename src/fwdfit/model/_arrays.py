@@ -1,0 +1,30 @@
+"""Host values to device arrays, and the plan helpers every geometry shares (pixel grids,
+tabulated attenuation)."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from .._errors import FwdfitError
+
+
+def to_device(values, dtype=None):
+    """values as a JAX array of ``dtype`` (default float, float32 without x64): a plain
+    transfer, where ``jnp.asarray`` compiles a small program for every new shape (~14 ms
+    each, ~0.2 s of a warm run's plan)."""
+    return jax.device_put(np.asarray(values, dtype=float if dtype is None else dtype))
+
+
+def check_pixels(x_um: np.ndarray, pixel_um: float, where: str) -> None:
+    """Measured x_um must be pixel centres on a uniform grid of the instrument's pixel."""
+    steps = np.diff(x_um)
+    if np.max(np.abs(steps - pixel_um)) > 1e-3 * pixel_um:
+        raise FwdfitError(f"{where}: x_um must be spaced by the instrument's pixel_um = {pixel_um} "
+                          f"(found steps {steps.min():.4g} to {steps.max():.4g})")
+
+
+def mu_tables(scene, lam: np.ndarray) -> np.ndarray:
+    """Tabulated attenuation (n_lam, n_layer) 1/m of every layer at wavelengths lam (0 without a table)."""
+    return np.stack([l.material.mu_table(lam) if l.material and l.material.mu_table else 0 * lam
+                     for l in scene.sample.layers], axis=-1)

@@ -1,0 +1,215 @@
+"""The cylinder behind the fit's seam (``model._geometry.Geometry``): concentric shells
+about an axis along the detector's columns.
+
+Where a circle of radius r lands: X = M (c ± r), M = L / (L - Delta), c the axis
+(centre + shift + drift x distance). The starts read the outer rim off the sharpest
+profile (the nearest: its rim peak and dip lie within a penumbra of the rim): the
+outermost steep flanks of the smoothed profile on both sides give the centre (their
+midpoint, on every profile alike) and the radius; a shell without a thickness is placed
+at the strongest feature inside the rim that no earlier circle explains; an unknown
+attenuation comes from the profile's level at the axis.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..._errors import FwdfitError
+from ...scene import _registry as registry
+from ...scene._scene import CORE_VACUUM
+from .._geometry import Estimate, edge_half_width_um
+from ._plan import build_model, initial_params
+
+_OPEN_FRACTION = 0.08  # each end of a profile taken as open beam for its level
+_FEATURE_FRACTION = 0.3  # a rim's flank: where the deviation first reaches this fraction of its largest
+_FALLBACK_MU_PER_M = 10.0
+_MIN_SMOOTH_PIXELS = 5  # the rim is found on a running mean of at least this many pixels ...
+_NOISE_FACTOR = 5.0  # ... where the departure exceeds this many times the open beam's scatter
+
+
+def _magnification(scene, profile) -> float:
+    L = scene.instruments[profile.instrument].aperture_distance_m * 1e6
+    return L / (L - 1e3 * profile.distance_mm)
+
+
+def _axis_um(scene, profile, centre_um: float) -> float:
+    """Where the axis lies in the sample plane for one profile."""
+    return centre_um + profile.shift_um + scene.sample.drift_um_per_mm * profile.distance_mm
+
+
+def _penumbra_um(scene, profile) -> float:
+    """The penumbra's width (µm) on the detector."""
+    instrument = scene.instruments[profile.instrument]
+    return profile.distance_mm * instrument.aperture_mm / instrument.aperture_distance_m
+
+
+def _smooth(T: np.ndarray, n: int) -> np.ndarray:
+    if n <= 1:
+        return np.asarray(T, float)
+    padded = np.pad(np.asarray(T, float), n, mode="edge")
+    return np.convolve(padded, np.ones(n) / n, mode="same")[n:-n]
+
+
+def _rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float, float] | None:
+    """(left, right, open level): the outermost points where the smoothed profile departs
+    from its open level by ``_FEATURE_FRACTION`` of its largest departure; None where the
+    profile shows no rim on a side."""
+    s = _smooth(T, max(pixels, _MIN_SMOOTH_PIXELS))
+    n_open = max(3, int(_OPEN_FRACTION * len(s)))
+    open_beam = np.concatenate([s[:n_open], s[-n_open:]])
+    level = float(np.median(open_beam))
+    deviation = np.abs(s - level)
+    noise = float(np.std(open_beam))
+    inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
+    if len(inside) < 2 or inside[0] < n_open or inside[-1] >= len(s) - n_open:
+        return None
+    # the ends must be open beam: flat within their noise (inside a sample the chord changes)
+    pixel_noise = float(np.std(np.diff(T))) / math.sqrt(2.0)
+    half = n_open // 2
+    for end in (np.asarray(T[:n_open], float), np.asarray(T[-n_open:], float)):
+        if abs(end[:half].mean() - end[half:].mean()) > 4.0 * pixel_noise / math.sqrt(half) + 1e-5:
+            return None
+    return float(x[inside[0]]), float(x[inside[-1]]), level
+
+
+class Cylinder:
+    """Concentric shells, listed outside in; a rod's innermost layer fills the core."""
+
+    def initial_params(self, scene, dtype=None):
+        return initial_params(scene, dtype)
+
+    def plan_scene(self, scene, free):
+        """Unknown values filled for the plan: the radius at half the widest profile's
+        width in the sample plane (the ray grids then cover any radius it shows), the centre
+        at 0, a thickness at 0, any other at 1."""
+        sample = scene.sample
+        radius = sample.outer_radius_um
+        if math.isnan(radius):
+            radius = max(0.5 * (p.x_um[-1] - p.x_um[0]) / _magnification(scene, p) for p in scene.profiles)
+        layers = []
+        for layer in sample.layers:
+            changes = {key: (0.0 if key == "thickness_um" else 1.0)
+                       for key in registry.part("layers", "cylinder") if math.isnan(getattr(layer, key))}
+            layers.append(dataclasses.replace(layer, **changes))
+        centre = 0.0 if math.isnan(sample.centre_um) else sample.centre_um
+        return dataclasses.replace(scene, sample=dataclasses.replace(
+            sample, outer_radius_um=radius, centre_um=centre, depth_mm=2e-3 * radius, layers=tuple(layers)))
+
+    def build_model(self, scene, accuracy, free, tilt_range_deg):
+        return build_model(scene, accuracy, free, tilt_range_deg)
+
+    def check_data(self, scene, T):
+        """A free radius or centre without a start needs a profile that shows both rims."""
+        sample = scene.sample
+        if math.isfinite(sample.outer_radius_um) and math.isfinite(sample.centre_um):
+            return
+        if not any(_rim(p.x_um, t, self._pixels(scene, p)) for p, t in zip(scene.profiles, T)):
+            raise FwdfitError(f"{scene.path}: no profile shows both rims of the cylinder: give "
+                              "sample.outer_radius_um and sample.centre_um start values")
+
+    @staticmethod
+    def _pixels(scene, profile) -> int:
+        pixel = scene.instruments[profile.instrument].pixel_um
+        return max(1, int(0.25 * _penumbra_um(scene, profile) / pixel))
+
+    def estimate(self, scene, free, T, model):
+        sample = scene.sample
+        values = {p.name: p.value for p in free}
+        rims = {i: _rim(p.x_um, t, self._pixels(scene, p)) for i, (p, t) in enumerate(zip(scene.profiles, T))}
+        usable = [i for i, r in rims.items() if r is not None]
+        by_name = {p.target[0]: p for p in free if not p.target[1]}
+        centre, radius = sample.centre_um, sample.outer_radius_um
+        if usable:
+            sharpest = min(usable, key=lambda i: scene.profiles[i].distance_mm)
+            p = scene.profiles[sharpest]
+            left, right, _ = rims[sharpest]
+            M = _magnification(scene, p)
+            centres = [0.5 * (rims[i][0] + rims[i][1]) / _magnification(scene, scene.profiles[i])
+                       - _axis_um(scene, scene.profiles[i], 0.0) for i in usable]
+            if "centre_um" in by_name:
+                centre = values[by_name["centre_um"].name] = float(np.median(centres))
+            if "outer_radius_um" in by_name:
+                radius = values[by_name["outer_radius_um"].name] = 0.5 * (right - left) / M
+        pinned = [by_name[k].name for k in ("centre_um", "outer_radius_um") if k in by_name]
+        thickness_names = []
+        for p in free:
+            field, index = p.target
+            if field == "thickness_um":
+                thickness_names.append(p.name)
+                if math.isnan(values[p.name]):
+                    values[p.name] = self._shell(scene, T, usable, centre, radius, index[0])
+                    pinned.append(p.name)
+            elif field == "mu_per_m" and math.isnan(values[p.name]):
+                values[p.name] = self._mu(scene, T, usable, centre, radius, index[0], model)
+            elif field in ("background", "mu_per_m_per_A") and math.isnan(values[p.name]):
+                values[p.name] = 0.0
+            elif field == "norm" and index[0] in usable:
+                values[p.name] = rims[index[0]][2]
+            elif field in ("shift_um", "density_scale", "norm") and math.isnan(values[p.name]):
+                values[p.name] = registry.BY_KEY[field].default
+        return Estimate(values, tuple(thickness_names), (), tuple(pinned))
+
+    def _shell(self, scene, T, usable, centre, radius, layer) -> float:
+        """A shell's thickness from the strongest slope of the sharpest profile inside the
+        circles already placed (the scene's thicknesses outside it), else a tenth of the radius."""
+        known = sum(l.thickness_um for l in scene.sample.layers[:layer] if math.isfinite(l.thickness_um))
+        outer = radius - known
+        if not usable or not math.isfinite(outer):
+            return 0.1 * radius
+        i = min(usable, key=lambda k: scene.profiles[k].distance_mm)
+        p = scene.profiles[i]
+        M = _magnification(scene, p)
+        axis = M * _axis_um(scene, p, centre)
+        s = _smooth(T[i], self._pixels(scene, p))
+        slope = np.abs(np.gradient(s, p.x_um))
+        r = np.abs(p.x_um - axis) / M
+        guard = edge_half_width_um(p.distance_mm, _penumbra_um(scene, p),
+                                   scene.instruments[p.instrument].psf_fwhm_um, 0.0) / M
+        inside = (r < outer - guard) & (r > 0.1 * outer)
+        if not inside.any():
+            return 0.1 * radius
+        return float(outer - r[inside][np.argmax(slope[inside])])
+
+    def _mu(self, scene, T, usable, centre, radius, layer, model) -> float:
+        """mu (1/m) of a rod's core from the level at the axis (a straight chord 2 R through
+        the core only: a start, the fit refines it), else the fallback."""
+        sample = scene.sample
+        if not usable or layer != len(sample.layers) - 1 or sample.core == CORE_VACUUM or len(sample.layers) > 1:
+            return _FALLBACK_MU_PER_M
+        i = usable[0]
+        p = scene.profiles[i]
+        axis = _magnification(scene, p) * _axis_um(scene, p, centre)
+        near = np.abs(p.x_um - axis) < 0.2 * radius
+        if near.sum() < 3:
+            return _FALLBACK_MU_PER_M
+        s = _smooth(T[i], self._pixels(scene, p))
+        n_open = max(3, int(_OPEN_FRACTION * len(s)))
+        level = float(np.median(np.concatenate([s[:n_open], s[-n_open:]])))
+        ratio = float(np.median(T[i][near])) / level
+        return max(-math.log(min(max(ratio, 1e-6), 1.0)) / (2e-6 * radius), 0.0)
+
+    def at_tilts(self, free, estimate, row, tilts_deg):
+        """A cylinder has no tilt: the row as it is."""
+        return np.repeat(row[None], len(tilts_deg), axis=0)
+
+    def interfaces(self, scene, profile):
+        """Each circle's two faces on the detector, X = M (c ± r), outside in, and the edge
+        half width from the penumbra and the blur."""
+        sample, instrument = scene.sample, scene.instruments[profile.instrument]
+        M = _magnification(scene, profile)
+        axis = _axis_um(scene, profile, sample.centre_um)
+        shells = sample.layers if sample.core == CORE_VACUUM else sample.layers[:-1]
+        radii = sample.outer_radius_um - np.concatenate([[0.0], np.cumsum([l.thickness_um for l in shells])])
+        media = ["vacuum"] + [l.name for l in sample.layers] + (["vacuum"] if sample.core == CORE_VACUUM else [])
+        faces = []
+        for k, r in enumerate(radii):
+            if r <= 0:
+                continue
+            faces += [(M * (axis - r),) * 2 + (f"{media[k + 1]} | {media[k]}, left",),
+                      (M * (axis + r),) * 2 + (f"{media[k]} | {media[k + 1]}, right",)]
+        faces.sort(key=lambda face: face[0])
+        return faces, edge_half_width_um(profile.distance_mm, _penumbra_um(scene, profile), instrument.psf_fwhm_um,
+                                         0.0)
