@@ -20,8 +20,14 @@ import pytest
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
 jax.config.update("jax_enable_x64", True)
-# Compiled programs of this session go to a fresh folder, never the user's cache.
-os.environ["FWDFIT_CACHE_DIR"] = tempfile.mkdtemp(prefix="fwdfit-test-cache-")
+# Compiled programs of this session go to a fresh folder, never the user's cache; the
+# workers of one pytest-xdist run share it (a program one compiled, the other loads).
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+if _RUN:
+    os.environ["FWDFIT_CACHE_DIR"] = os.path.join(tempfile.gettempdir(), f"fwdfit-test-cache-{_RUN}")
+    os.makedirs(os.environ["FWDFIT_CACHE_DIR"], exist_ok=True)
+else:
+    os.environ["FWDFIT_CACHE_DIR"] = tempfile.mkdtemp(prefix="fwdfit-test-cache-")
 
 
 @pytest.fixture

@@ -244,6 +244,27 @@ def _sample_posterior(args, fitter, result):
                   fitter=fitter, result=result)
 
 
+def _run_design(args) -> None:
+    from ..inference._design import design
+    from ..outputs._design_output import design_dict, write_design
+
+    _enable_float64()
+    scene = _scene_of(args)
+    _use_cache(args)
+    plan = design(scene, target=args.target or None, exposure=args.exposure, accuracy=args.accuracy,
+                  progress=args.say)
+    write_design(plan, Path(args.out))
+    summary = design_dict(plan)
+    for name, errors in ((n, p["errors"]) for n, p in summary["plans"].items()):
+        text = ", ".join(f"{t} ± {errors[t]:.3g}" if errors[t] is not None else f"{t} undetermined"
+                         for t in summary["targets"])
+        print(f"{name:>8}: {text}")
+    used = ", ".join(f"{m['spectrum']} at {m['distance_mm']:g} mm: {m['exposure']:.3g}"
+                     for m in summary["plans"]["optimal"]["measurements"])
+    print(f"optimal plan (exposure per measurement): {used}")
+    print(f"wrote design.json, design.csv, design.png to {args.out}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command line's argument parser (every command and option)."""
     from ..paganin._paganin_scene import MODES as PAGANIN_MODES
@@ -315,6 +336,22 @@ def build_parser() -> argparse.ArgumentParser:
     series.add_argument("--workers", type=int, default=None, metavar="N",
                         help="local Dask worker processes (default: the machine's cores); 1: serially in "
                              "this process, no Dask needed")
+    plan = commands.add_parser(
+        "design", help="plan measurements: the distances and spectra that best determine chosen parameters",
+        description="From the model's derivatives at the scene's values, the Fisher information of each "
+                    "candidate measurement ([design] distances_mm x spectra, and the scene's own); the "
+                    "exposure split that minimises the targets' predicted errors within the total "
+                    "exposure. Writes design.json, design.csv and design.png. " + _CACHE)
+    _add_scene_options(plan, "scene file (TOML) with a [fit] table (its values: the expected sample)",
+                       "output folder for design.json, design.csv, design.png")
+    plan.add_argument("--target", action="append", metavar="NAME",
+                      help="a parameter to plan for (repeatable; default: [design] target, else every "
+                           "shared free parameter)")
+    plan.add_argument("--exposure", type=float, default=None, metavar="E",
+                      help="total exposure in units of one profile's (default: [design] exposure, else "
+                           "the number of profiles)")
+    _add_run_options(plan)
+    plan.set_defaults(handler=_run_design)
     add_profile_parser(commands)
     return parser
 

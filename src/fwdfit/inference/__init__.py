@@ -13,10 +13,12 @@ on-disk cache); ``levenberg_marquardt`` is the
 default solver of residual rows; ``outer_edges``, ``one_edge``, ``refraction_edges``, ``segment`` and
 ``attenuation_from_plateau`` read starts off the data; ``assess`` and ``runs_z`` are the
 quality gate; ``covariance`` and ``errors_and_correlation`` the uncertainty from the
-Jacobian; ``diagnostics`` the sampler's effective sample sizes and R-hat.
+Jacobian; ``diagnostics`` the sampler's effective sample sizes and R-hat; ``optimal_plan`` the
+experiment design's exposure split for given information matrices.
 """
 
 from ._cache import cache_dir as cache_dir
+from ._design import optimal_plan as optimal_plan
 from ._geometry import Geometry as Geometry
 from ._geometry import LayeredBlock as LayeredBlock
 from ._geometry import geometry_of as geometry_of

@@ -20,6 +20,7 @@ from .._errors import FwdfitError
 from ._limits import (DOMAIN, MAX_DIVERGENCE, MAX_PIXELS, MAX_PSF_PIXELS, SEE, check_domain,
                       check_domain_rows)
 from ._materials import MaterialConstants, constants_from_formula, constants_from_ncrystal
+from ._design_spec import DesignSpec, read_design
 from ._spectrum import BandSpectrum, GaussianLine, Spectrum, TabulatedSpectrum
 from ..io._tables import read_columns
 
@@ -200,6 +201,7 @@ class Scene:
     fit: FitSpec = dataclasses.field(default_factory=FitSpec)
     accuracy: float = DEFAULT_ACCURACY
     path: Path | None = None
+    design: DesignSpec = dataclasses.field(default_factory=DesignSpec)
 
     def input_files(self) -> tuple[Path, ...]:
         """Every file the scene was read from: the scene file, profile tables and images,
@@ -228,7 +230,7 @@ ERRORS_ESTIMATE = "estimate"  # errors = "estimate": the noise from the data, a 
 PASSIVE_COLUMNS = ("T_att", "T_att_err", "T_att_true", "T_model", "T_corrected", "T_corrected_err",
                    "T_err_uncorr", "I_sample", "I_sample_err", "I_open", "I_open_err", "N_open_rays")
 _BAND_KEYS = ("lambda_min_A", "lambda_max_A")
-_TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model"}
+_TOP_KEYS = {"sample", "instrument", "instruments", "spectra", "profiles", "fit", "model", "design"}
 
 
 class _Reader:
@@ -311,8 +313,9 @@ def load_scene(path: str | Path) -> Scene:
     profiles = _profiles(path, document.get("profiles", []), instruments, spectra)
     model = _Reader(path, document.get("model", {}), "model", {"accuracy"})
     accuracy = model.number("accuracy", DEFAULT_ACCURACY, positive=True)
+    design = read_design(path, document.get("design", {}), spectra)
     _check_combinations(path, sample, instruments, profiles)
-    return Scene(sample, instruments, spectra, profiles, fit, accuracy, path)
+    return Scene(sample, instruments, spectra, profiles, fit, accuracy, path, design)
 
 
 def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instrument],

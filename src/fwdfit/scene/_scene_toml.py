@@ -9,6 +9,7 @@ paths; a profile without a file is written as its pixel grid (``x_min_um``,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -95,6 +96,12 @@ def _tables(scene: Scene, folder: Path | None) -> list[_Table]:
         tables.append(("[fit]", "fit", entries))
     if scene.accuracy != DEFAULT_ACCURACY:
         tables.append(("[model]", "model", [("accuracy", scene.accuracy)]))
+    design = scene.design
+    entries = [(key, list(value) if isinstance(value, tuple) else value)
+               for key, value in dataclasses.asdict(design).items()
+               if value != () and not (isinstance(value, float) and math.isnan(value))]
+    if entries:
+        tables.append(("[design]", "design", entries))
     return tables
 
 
