@@ -9,7 +9,7 @@ assertions included, fails the test.
 The kernels import the same fwdfit as this test session (its folder goes first on
 their PYTHONPATH) and share one JAX persistent compilation cache in a temporary
 folder: fits that two notebooks compile identically (01 and 02, 03 and 04) are
-compiled once. Runtime on two CPU cores: a few minutes for all seven, most of it the
+compiled once. Runtime on two CPU cores: a few minutes for all eight, most of it the
 fits' compilation (marked slow; ``-m "not slow"`` leaves them out).
 """
 
@@ -43,7 +43,8 @@ def kernel_env(tmp_path_factory):
 def test_notebooks_found():
     assert NAMES == ["01_quick_start.ipynb", "02_al_block.ipynb", "03_oxide.ipynb",
                      "04_paganin_vs_forward_model.ipynb", "05_speed_vs_error.ipynb",
-                     "06_time_of_flight.ipynb", "07_graded_rough_coating.ipynb"]
+                     "06_time_of_flight.ipynb", "07_graded_rough_coating.ipynb",
+                     "08_cladding_tube.ipynb"]
 
 
 @pytest.mark.slow
