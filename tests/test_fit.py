@@ -28,6 +28,7 @@ the one successful ``fwdfit fit`` uses data made by ``fwdfit.simulate``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import warnings
@@ -418,3 +419,19 @@ def test_fit_cli_writes_results(small_case, tmp_path, capsys):
     assert fitted.fit.vary == tuple(SMALL_START)
     assert fitted.fit.bounds == {"layers.Al.thickness_um": (900.0, 1100.0)}
     np.testing.assert_allclose(fitted.profiles[0].T, rows[:, 1], rtol=1e-8)  # same data file
+
+
+def test_a_parameter_pinned_at_its_bound_is_reported(tmp_path):
+    """A scene whose 1/v attenuation alone exceeds what the data show (mu_per_m_per_A 5 /m/Å
+    where the data's Al has 0.774) drives the free mu_per_m to its lower bound 0: the fit says
+    so in its warnings instead of reporting the bound as a measured value."""
+    _write_csv(tmp_path / "line.csv", "x_um,T,T_err", _small_table(tmp_path))
+    scene = small_scene(SMALL_TRUTH, file=tmp_path / "line.csv", vary=["layers.Al.mu_per_m"])
+    heavy = dataclasses.replace(scene.sample.layers[0], mu_per_m_per_A=5.0)
+    scene = dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, layers=(heavy,)))
+    path = fwdfit.save_scene(scene, tmp_path / "scene.toml")
+    with pytest.warns(UserWarning, match="pinned at its lower bound"):
+        result = fwdfit.fit(path)
+    (value,) = result.values
+    assert value < 0.1 * result.errors[0]
+    assert any("layers.Al.mu_per_m" in w and "pinned at its lower bound 0" in w for w in result.warnings)

@@ -330,6 +330,8 @@ class Fitter:
         for p, column, value, error in zip(free, jacobian.T, values, errors):
             if not np.any(column) or error > 10 * max(abs(value), p.step):
                 notes.append(f"{p.name} is not constrained by the data (error {error:.3g})")
+            else:
+                notes.extend(_at_bound(p, value, error))
         converged = bool(solution.converged[best])
         if not converged:
             notes.append("the solver did not converge: the values are the last accepted step")
@@ -399,3 +401,13 @@ def _fitted_scene(scene: Scene, free: tuple[FreeParameter, ...], values) -> Scen
             sample_updates[key] = float(value)
     sample = dataclasses.replace(scene.sample, layers=tuple(layers), **sample_updates)
     return dataclasses.replace(scene, sample=sample, profiles=tuple(profiles))
+
+
+def _at_bound(p, value: float, error: float) -> list[str]:
+    """A note when the fit pinned ``p`` at one of its bounds (within a tenth of its error): the
+    data pull it beyond, so its value and error describe the bound, not the data."""
+    for side, bound in (("lower", p.low), ("upper", p.high)):
+        if math.isfinite(bound) and abs(value - bound) < 0.1 * error:
+            return [f"{p.name} = {value:.4g} is pinned at its {side} bound {bound:g}: the data pull it beyond; "
+                    "fix it, or check the scene (a material's mu_per_m_per_A, a start)"]
+    return []
