@@ -195,6 +195,22 @@ class Cylinder:
         """A cylinder has no tilt: the row as it is."""
         return np.repeat(row[None], len(tilts_deg), axis=0)
 
+    def plateau(self, scene, profile):
+        """Pixels about the axis, inside the innermost circle (the core of a rod, the bore of a
+        tube): within half its radius and farther from it than the rim's reach, 2 theta_c Delta
+        (rays totally reflected at the longest wavelength), half the penumbra and three blur
+        sigmas."""
+        sample, instrument = scene.sample, scene.instruments[profile.instrument]
+        M = _magnification(scene, profile)
+        shells = sample.layers if sample.core == CORE_VACUUM else sample.layers[:-1]
+        inner = sample.outer_radius_um - sum(l.thickness_um for l in shells)
+        sld = max(abs(l.density_scale * l.sld_e6_per_A2) for l in sample.layers)
+        critical_rad = scene.spectra[profile.spectrum].support_A[1] * math.sqrt(sld * 1e-6 / math.pi)
+        reach = (2.0 * critical_rad * 1e3 * profile.distance_mm + 0.5 * _penumbra_um(scene, profile)
+                 + 3.0 * instrument.psf_fwhm_um / 2.3548)
+        half = min(0.5 * M * inner, M * inner - reach)
+        return np.abs(profile.x_um - M * _axis_um(scene, profile, sample.centre_um)) < half
+
     def interfaces(self, scene, profile):
         """Each circle's two faces on the detector, X = M (c ± r), outside in, and the edge
         half width from the penumbra and the blur."""
