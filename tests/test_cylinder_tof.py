@@ -113,24 +113,31 @@ def test_bins_T_match_the_exact_tracer(tmp_path):
 
 
 def test_fit_bins_from_data_starts_writes_the_spectrum_about_the_axis(tmp_path):
-    """``fwdfit fit`` of four bins across the edge (the model's T with 0.5 % noise per 5 µm
-    pixel), the radius and centre left out: the starts read off the rim (before, its smoothed
-    flank put the radius 14 µm out, and the fit stopped at 514 µm, reduced chi-square 4.8)
-    lead to R within 0.5 µm and the centre within 0.5 µm; spectrum.csv reads the pixels
-    within R/2 of the axis, its T_att the mean there of the NCrystal chords (2e-5) and its
-    data within 4 errors of the fit, the edge's rise in T_att > 2.5e-3."""
+    """The time-of-flight pipeline's scene skeleton (``tof.skeleton_toml``, as ``fwdfit profile
+    --tof`` writes it) with a user's cylinder filled in (radius and centre left out) and
+    ``fwdfit fit`` of its four bins (3.80-4.30 Å, one across the 4.05 Å edge; the model's T
+    with 0.5 % noise per 5 µm pixel): the starts read off the rim (before, its smoothed flank
+    put the radius 14 µm out, and the fit stopped at 514 µm, reduced chi-square 4.8) lead to
+    R and the centre within 0.5 µm; spectrum.csv reads the pixels within R/2 of the axis, its
+    T_att the mean there of the NCrystal chords (2e-5) and its data within 4 errors of the
+    fit, the edge's rise in T_att > 2.5e-3."""
     from fwdfit.cli import main
-    bands = ((3.80, 3.95), (3.95, 4.04), (4.06, 4.15), (4.15, 4.30))
+    from fwdfit.tof import skeleton_toml
+    edges = np.array([3.80, 3.95, 4.04, 4.15, 4.30])
+    bands = tuple(zip(edges[:-1], edges[1:]))
     truth = _load(tmp_path, _scene_text(bands), "truth.toml")
     rng = np.random.default_rng(1)
-    files = []
     for p in fwdfit.simulate(truth):
         T = p.T + 5e-3 * rng.standard_normal(p.T.shape)
         np.savetxt(tmp_path / f"{p.name}.csv", np.column_stack([p.x_um, T, np.full_like(T, 5e-3)]), delimiter=",",
                    header="x_um,T,T_err", comments="", fmt="%.8f")
-        files.append(f"{p.name}.csv")
-    fit = '[fit]\nvary = ["sample.outer_radius_um", "sample.centre_um"]\n'
-    text = _scene_text(bands, files=files, fit=fit).replace(f"outer_radius_um = {R_UM}\ncentre_um = 0.0\n", "")
+    skeleton = skeleton_toml(edges, truth.profiles[0].x_um, PIXEL_UM, tmp_path, distance_mm=DISTANCE_MM, header="test")
+    sample = skeleton[skeleton.index("# [sample]"):skeleton.index("[instrument]")]
+    aperture = skeleton[skeleton.index("# aperture ="):skeleton.index("pixel_um")]
+    text = skeleton.replace(sample, f'[sample]\ngeometry = "cylinder"\n\n[[sample.layers]]\nname = "Al"\n'
+                                    f'ncrystal = "{CFG}"\n\n').replace(
+        aperture, f'aperture = "square"\naperture_mm = {APERTURE_UM / 1e3}\naperture_distance_m = {L_UM / 1e6}\n')
+    text += '\n[fit]\nvary = ["sample.outer_radius_um", "sample.centre_um"]\n'
     (tmp_path / "fit.toml").write_text(text)
     assert main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     fitted = fwdfit.load_scene(tmp_path / "out" / "fitted_scene.toml")
