@@ -19,7 +19,7 @@ from ..model._geometry import edge_half_width_um
 from ..model.block._plan import build_model, initial_params
 from ..model.cylinder import Cylinder
 from ..scene import _registry as registry
-from ._starts import SLD_VALUE_MAX, estimate, narrow_profiles
+from ._starts import SLD_VALUE_MAX, estimate, narrow_profiles, refraction_reach_um
 
 
 class LayeredBlock:
@@ -72,6 +72,23 @@ class LayeredBlock:
         rows[:, tilt] = tilts_deg
         rows[:, thickness] = projected[None] * np.cos(np.radians(tilts_deg))[:, None]
         return rows
+
+    def plateau(self, scene, profile):
+        """Pixels inside the thickest layer, farther from its faces (at the mid-plane, and carried
+        along the tilt to the detector) than the refraction reach plus the tilt's spread over
+        the depth."""
+        sample = scene.sample
+        thickness = np.array([l.thickness_um for l in sample.layers])
+        tilt = math.radians(sample.tilt_deg)
+        bounds = np.concatenate([[0.0], np.cumsum(thickness)]) - 0.5 * thickness.sum()
+        bounds = (sample.centre_um + profile.shift_um + sample.drift_um_per_mm * profile.distance_mm
+                  + bounds / math.cos(tilt))
+        carried = 1e3 * profile.distance_mm * math.tan(tilt)  # refracted rays land about the faces carried along
+        thickest = int(np.argmax(thickness))
+        margin = refraction_reach_um(scene, profile) + 0.5e3 * sample.depth_mm * abs(math.tan(tilt))
+        low = max(bounds[thickest], bounds[thickest] + carried) + margin
+        high = min(bounds[thickest + 1], bounds[thickest + 1] + carried) - margin
+        return (profile.x_um > low) & (profile.x_um < high)
 
     def interfaces(self, scene, profile):
         """Each face from its upstream to its downstream end, projected along the beam, and the

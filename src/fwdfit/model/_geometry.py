@@ -69,6 +69,10 @@ class Geometry(Protocol):
         """Rows (m, n_free): ``row`` (n_free,) at each trial tilt, with what the data pin
         at that tilt (e.g. projected widths) kept."""
 
+    def plateau(self, scene: Scene, profile: Profile) -> np.ndarray:
+        """Pixels (bool, (n,)) of the profile where T_att is read for a spectrum (time-of-flight
+        bins): inside the sample, farther from every face than refraction moves intensity."""
+
     def interfaces(self, scene: Scene, profile: Profile) -> tuple[list[tuple[float, float, str]], float]:
         """Where each interface lands on the profile, (x_from_um, x_to_um, label) each,
         and the half width (µm) of the region its refraction spreads over."""

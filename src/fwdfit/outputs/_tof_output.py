@@ -2,8 +2,8 @@
 
 Written by ``write_fit`` beside the per-profile files when at least two profiles have
 band spectra (wavelength bins): ``tof_stack.csv`` (long format, one row per bin and
-pixel), ``spectrum.csv`` and ``spectrum.png`` (the mean over a region of the thickest
-layer away from its interfaces, data against fit, per bin).
+pixel), ``spectrum.csv`` and ``spectrum.png`` (the mean over a region inside the sample
+away from its faces, the geometry's ``plateau``, data against fit, per bin).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 
 from ..inference._fit import FitResult
 from ..scene._spectrum import BandSpectrum
-from ..inference._starts import refraction_reach_um
+from ..inference._geometry import geometry_of
 from ..io._tables import write_columns
 
 
@@ -27,20 +27,10 @@ def tof_bins(result: FitResult) -> list[int]:
 
 
 def away_from_edges(scene, index: int) -> np.ndarray:
-    """Pixels (bool, (n,)) of profile ``index`` inside the thickest layer, farther from its
-    interfaces (at the mid-plane, and carried along the tilt to the detector) than the
-    refraction reach plus the tilt's spread over the depth (fitted scene)."""
-    sample, profile = scene.sample, scene.profiles[index]
-    thickness = np.array([l.thickness_um for l in sample.layers])
-    tilt = math.radians(sample.tilt_deg)
-    bounds = np.concatenate([[0.0], np.cumsum(thickness)]) - 0.5 * thickness.sum()
-    bounds = sample.centre_um + profile.shift_um + sample.drift_um_per_mm * profile.distance_mm + bounds / math.cos(tilt)
-    carried = 1e3 * profile.distance_mm * math.tan(tilt)  # refracted rays land about the faces carried to the detector
-    thickest = int(np.argmax(thickness))
-    margin = refraction_reach_um(scene, profile) + 0.5e3 * sample.depth_mm * abs(math.tan(tilt))
-    low = max(bounds[thickest], bounds[thickest] + carried) + margin
-    high = min(bounds[thickest + 1], bounds[thickest + 1] + carried) - margin
-    return (profile.x_um > low) & (profile.x_um < high)
+    """Pixels (bool, (n,)) of profile ``index`` where the spectrum is read: inside the sample,
+    away from its faces (the geometry's ``plateau``: a block's thickest layer, a cylinder's
+    innermost circle about the axis), in the fitted scene."""
+    return geometry_of(scene).plateau(scene, scene.profiles[index])
 
 
 def spectrum_table(result: FitResult, bins: list[int]) -> dict[str, np.ndarray]:

@@ -21,6 +21,7 @@ import numpy as np
 from ...scene import _registry as registry
 from ...scene._registry import layer_value as layer_value
 from ..._errors import FwdfitError, ModelWarning
+from .._arrays import bragg_breaks_A as bragg_breaks_A
 from .._arrays import check_pixels as check_pixels
 from .._arrays import mu_tables as _mu_tables
 from .._arrays import to_device as to_device
@@ -40,9 +41,6 @@ _TILT_GRID = 65  # normal tilts of a rough face at which the sub-windows' width 
 # The mid-plane step profile (the plateaus) costs little: its spectrum average uses this
 # many wavelength nodes at least (the plateau of a 2 mm Al block within 2e-5 of exact).
 _STEP_WAVELENGTHS = 64
-# Bragg edges that split the wavelength quadrature: those whose jump in exp(-mu * depth)
-# exceeds the accuracy, the strongest first, at most this many.
-_MAX_BRAGG_BREAKS = 8
 # A band narrower than this fraction of its centre needs no more wavelength nodes than a line.
 _NARROW_BAND_REL = 0.3
 # A plain band narrower than this fraction of its centre (a time-of-flight bin) needs one
@@ -411,19 +409,6 @@ def _sub_window_edges(scene: Scene, instrument, spectrum, profile, margin: float
     return tuple(math.ceil(margin * w / bin_um) + 4 for w in widest)
 
 
-def bragg_breaks_A(scene: Scene, accuracy: float) -> tuple[float, ...]:
-    """Bragg edges (Å) at which the wavelength quadrature splits, for every layer's material.
-
-    Those whose jump in exp(-mu * depth) (about depth x the drop in mu) exceeds ``accuracy``,
-    the strongest ``_MAX_BRAGG_BREAKS``; none for scenes without tabulated materials.
-    """
-    depth_m = 1e-3 * scene.sample.depth_mm
-    edges = [(jump * depth_m, edge) for layer in scene.sample.layers if layer.material
-             for edge, jump in zip(layer.material.bragg_edges_A, layer.material.bragg_jumps_per_m)]
-    strongest = sorted((e for e in edges if e[0] > accuracy), reverse=True)[:_MAX_BRAGG_BREAKS]
-    return tuple(sorted(edge for _, edge in strongest))
-
-
 def _ladder(n: int) -> int:
     """Round up to 16 * 2^(k/2) so that profiles at similar distances share one plan."""
     return int(math.ceil(16 * 2 ** (math.ceil(2 * math.log2(max(n, 16) / 16)) / 2)))
@@ -495,7 +480,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     plans: dict[_PlanKey, list[int]] = {}
     per_profile = []
     depth_nodes, window_bins, sub_edges, sub_edges_by_geometry = {}, {}, {}, {}
-    breaks_A = bragg_breaks_A(scene, accuracy)
+    breaks_A = bragg_breaks_A(scene, accuracy, 1e-3 * scene.sample.depth_mm)
     attenuation = {name: _face_attenuation(scene, wavelength_quadrature(scene.spectra[name], _STEP_WAVELENGTHS,
                                                                         breaks_A)[0])
                    for name in {profile.spectrum for profile in scene.profiles}}  # per spectrum, not per profile

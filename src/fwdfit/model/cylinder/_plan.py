@@ -24,7 +24,7 @@ from ...scene import _registry as registry
 from ...scene._limits import check_domain
 from ...scene._scene import Scene
 from ...scene._spectrum import wavelength_quadrature
-from .._arrays import check_pixels, mu_tables, to_device
+from .._arrays import bragg_breaks_A, check_pixels, mu_tables, to_device
 from ._model import CylinderGroup, CylinderModel, CylinderParams, taper
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -46,8 +46,8 @@ def _nodes(accuracy: float) -> int:
 
 
 def _att_nodes(accuracy: float) -> int:
-    """Wavelength nodes of T_att, exp(-mu(lambda) chord) smooth in lambda: 16 differ from 64
-    by 4e-6 on the McStas rod, 8 by 7e-5 (no Bragg edges yet: a table's edges are not split)."""
+    """Wavelength nodes of T_att, exp(-mu(lambda) chord) smooth in lambda between Bragg edges
+    (the quadrature splits at them): 16 differ from 64 by 4e-6 on the McStas rod, 8 by 7e-5."""
     return 16 if accuracy >= 3e-4 else 64
 
 
@@ -114,6 +114,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
     grow = 1.0 + (_FREE_MARGIN if "sample.outer_radius_um" in free else 0.0)
     b_max = sample.outer_radius_um * grow + 1.0
     wide = any(name.startswith("profiles.") and name.endswith(".distance_mm") for name in free)
+    # Bragg edges split the wavelength quadrature where their jump over the longest chord, 2 R, shows
+    breaks_A = bragg_breaks_A(scene, accuracy, 2e-6 * b_max)
     plans: dict[tuple, list[int]] = {}
     per_profile, pads, steps = [], {}, []
     for i, profile in enumerate(scene.profiles):
@@ -128,8 +130,8 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
         aperture_cells = math.ceil(0.5 * width / cell) + 1
         sigma = instrument.psf_fwhm_um / _FWHM_PER_SIGMA
         psf_cells = math.ceil(_PSF_TRUNCATION_SIGMAS * sigma / cell) if sigma > 0 else 0
-        lam, weight = wavelength_quadrature(spectrum, _nodes(accuracy))
-        att_lam, att_weight = wavelength_quadrature(spectrum, _att_nodes(accuracy))
+        lam, weight = wavelength_quadrature(spectrum, _nodes(accuracy), breaks_A)
+        att_lam, att_weight = wavelength_quadrature(spectrum, _att_nodes(accuracy), breaks_A)
         # profiles alike share one vmapped program (an image's rows); others run apart, since
         # a vmapped deposit is slower than separate ones (37 against 14 ms for the McStas rod)
         key = (profile.instrument, len(x), len(lam), len(att_lam), aperture_cells, psf_cells)
