@@ -375,17 +375,6 @@ class _Binning:
         bins = np.clip(np.floor((fraction + 0.5) * _BINS), 0, _BINS - 1).astype(int)
         return _Binning(centre, int(np.max(np.abs(whole))) + 2, tuple(sorted(set(bins.tolist()))))
 
-    def recentred(self, centres: np.ndarray, use: np.ndarray, pixel_um: float) -> _Binning:
-        """The bins moved by whole pixels onto the median of the centres ``use`` marks (the
-        same bins and crop: the compiled fit's profiles keep their grid). The fitted centres
-        may lie pixels away from the edges' (the edges of one wall, from a start's wrong
-        thickness, are off by its error), and a row's whole-pixel shift stops at ``margin``."""
-        known = use & np.isfinite(centres)
-        if not known.any():
-            return self
-        whole = round((float(np.median(centres[known])) - self.centre_um) / pixel_um)
-        return dataclasses.replace(self, centre_um=self.centre_um + whole * pixel_um)
-
     def bin_offset_px(self, k: int) -> float:
         return (k + 0.5) / _BINS - 0.5
 
@@ -526,7 +515,6 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     fitter = rows = shared = None
     compile_time, row_time = faces.compile_time_s, 0.0
     for round_ in range(rounds):
-        binning = binning.recentred(centres, use, pixel)
         profiles = binning.profiles(profile, centres, use, sigma, pixel)
         weighted = sum(int(np.count_nonzero(p.T_err < _NO_WEIGHT)) for p in profiles)
         if fitter is None:
