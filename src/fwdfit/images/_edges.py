@@ -60,24 +60,31 @@ class FaceTemplate:
 @dataclasses.dataclass(frozen=True)
 class Faces:
     """Faces found in each row: ``position_um`` (rows, n_faces), NaN where not found (only
-    the first face of each template's group is placed); the stack's face offsets from its
-    centre in the templates ``offsets_um`` (n_faces,) and the window half-width ``reach_um``."""
+    the first face of each template's group is placed); the faces' positions with the
+    centre at 0 in the templates ``offsets_um`` (n_faces,), how far each moves per µm of the
+    centre ``per_centre`` (n_faces,: 1 for a block, the magnification for a cylinder) and the
+    window half-width ``reach_um``."""
 
     position_um: np.ndarray
     offsets_um: np.ndarray
     reach_um: float
     compile_time_s: float = 0.0
+    per_centre: np.ndarray | None = None
+
+    def centres_um(self) -> np.ndarray:
+        """The centre (rows, n_faces) each face found puts its row at (NaN: not found)."""
+        per_centre = np.ones_like(self.offsets_um) if self.per_centre is None else self.per_centre
+        return (self.position_um - self.offsets_um[None, :]) / per_centre[None, :]
 
 
 def _template_scene(scene: Scene, profile: Profile, x_um: np.ndarray) -> Scene:
-    """The scene with one plain profile on ``x_um`` and missing start values filled in."""
-    layers = scene.sample.layers
+    """The scene with one plain profile on ``x_um`` and missing start values filled in
+    (the sizes by the geometry, ``sized_for``)."""
     width = x_um[-1] - x_um[0]
+    scene = geometry_of(scene).sized_for(scene, width)
     filled = []
-    for layer in layers:
+    for layer in scene.sample.layers:
         changes = {}
-        if math.isnan(layer.thickness_um):
-            changes["thickness_um"] = 0.5 * width / len(layers)
         if math.isnan(layer.sld_e6_per_A2):
             changes["sld_e6_per_A2"] = _SLD_NOMINAL
         if math.isnan(layer.mu_per_m):
@@ -91,17 +98,25 @@ def _template_scene(scene: Scene, profile: Profile, x_um: np.ndarray) -> Scene:
     return dataclasses.replace(scene, sample=sample, profiles=(row,), fit=dataclasses.replace(scene.fit, per_row=()))
 
 
-def _face_offsets(scene: Scene) -> np.ndarray:
-    """x of every face of the stack relative to its centre (n_layers + 1,) µm."""
-    thickness = np.array([layer.thickness_um for layer in scene.sample.layers])
-    bounds = np.concatenate([[0.0], np.cumsum(thickness)])
-    return bounds - 0.5 * bounds[-1]
+def _face_landing(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Where the geometry puts every face on the detector (its ``interfaces``, left to
+    right, each face's upstream end) with the centre at 0 (n_faces,) µm, and how far each
+    moves per µm of the centre (n_faces,): face j lies at offsets[j] + per_centre[j] * centre."""
+    geometry, profile = geometry_of(scene), scene.profiles[0]
+
+    def at(centre):
+        moved = dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, centre_um=centre))
+        return np.array([face[0] for face in geometry.interfaces(moved, profile)[0]])
+
+    offsets = at(0.0)
+    return offsets, at(1.0) - offsets
 
 
 def face_templates(scene: Scene, profile: Profile, accuracy: float | None = None
-                   ) -> tuple[list[FaceTemplate], np.ndarray, float, float]:
+                   ) -> tuple[list[FaceTemplate], np.ndarray, np.ndarray, float, float]:
     """The model's profile around each face (faces closer than two reaches share one
-    window), the face offsets (n_faces,) µm, the window half-width µm and the compile time s.
+    window), the faces' positions at centre 0 and their moves per µm of the centre
+    (n_faces,) each (``_face_landing``), the window half-width µm and the compile time s.
 
     One program, evaluated once per window with the stack placed so that its face lies
     in the middle of a grid as wide as the window.
@@ -111,7 +126,7 @@ def face_templates(scene: Scene, profile: Profile, accuracy: float | None = None
     half = int(math.ceil(reach / pixel))
     grid = (np.arange(-half, half) + 0.5) * pixel  # the face at 0, on a pixel's left edge
     template_scene = _template_scene(scene, profile, grid)
-    offsets = _face_offsets(template_scene)
+    offsets, per_centre = _face_landing(template_scene)
     groups = [[0]]
     for j in range(1, len(offsets)):
         if offsets[j] - offsets[groups[-1][-1]] < 2 * reach:
@@ -130,10 +145,10 @@ def face_templates(scene: Scene, profile: Profile, accuracy: float | None = None
     # a plain jit, not a Predictor: a one-off evaluation, and programs that fwdfit's own
     # store serialised failed to run when loaded in a later process ("Function ... not found")
     begin = time.perf_counter()
-    centres = jnp.asarray([[-offsets[g[0]]] for g in groups])  # face g[0] at x = 0
+    centres = jnp.asarray([[-offsets[g[0]] / per_centre[g[0]]] for g in groups])  # face g[0] at x = 0
     T = np.asarray(jax.jit(jax.vmap(lambda v: model.flat(*assemble(v))[0]))(centres))
     templates = [FaceTemplate(g[0], tuple(g), -half, T[k, : 2 * half + spans[k]]) for k, g in enumerate(groups)]
-    return templates, offsets, reach, time.perf_counter() - begin
+    return templates, offsets, per_centre, reach, time.perf_counter() - begin
 
 
 def _scores(rows: np.ndarray, sigma: np.ndarray, template: np.ndarray) -> np.ndarray:
@@ -194,7 +209,7 @@ def find_faces(scene: Scene, profile: Profile, rows: np.ndarray, use: np.ndarray
     (rows,) marks: per template group the strongest match, where the rows'
     mean score clears ``_DETECT``, placed in the row's own score."""
     pixel = scene.instruments[profile.instrument].pixel_um
-    templates, offsets, reach, compile_time = face_templates(scene, profile, accuracy)
+    templates, offsets, per_centre, reach, compile_time = face_templates(scene, profile, accuracy)
     n_rows, n = rows.shape
     sigma = np.array([noise_sigma(row[np.isfinite(row)]) if np.isfinite(row).sum() > 2 else 0.0 for row in rows])
     sigma = np.maximum(sigma, 0.1 * np.median(sigma[use]) if use.any() else 0.0) + 1e-12
@@ -221,7 +236,7 @@ def find_faces(scene: Scene, profile: Profile, rows: np.ndarray, use: np.ndarray
             position[r, template.face] = profile.x_um[0] - 0.5 * pixel + (shift - m + 1 - template.start_px) * pixel
             strength[r, template.face] = score[r, k]
     _keep_consistent(position, strength, offsets, reach)
-    return Faces(position, offsets, reach, compile_time)
+    return Faces(position, offsets, reach, compile_time, per_centre)
 
 
 def _keep_consistent(position: np.ndarray, strength: np.ndarray, offsets: np.ndarray, reach: float) -> None:
@@ -248,39 +263,23 @@ def in_view(faces: Faces, centres_um: np.ndarray, x_um: np.ndarray, pixel_um: fl
     known = np.isfinite(centres_um)
     if not known.any():
         return np.zeros(len(faces.offsets_um), bool)
-    x = centres_um[known, None] + faces.offsets_um[None, :]
+    per_centre = np.ones_like(faces.offsets_um) if faces.per_centre is None else faces.per_centre
+    x = faces.offsets_um[None, :] + per_centre[None, :] * centres_um[known, None]
     low, high = x_um[0] + _IN_VIEW_PX * pixel_um, x_um[-1] - _IN_VIEW_PX * pixel_um
     return np.mean((x > low) & (x < high), axis=0) >= 0.5
 
 
 def check_determined(names, free_faces: np.ndarray, scene: Scene, path) -> None:
-    """FwdfitError naming every free parameter the faces in view (n_faces,) cannot fix: a
-    thickness without a face in view on each side of its layer, a layer's SLD without
-    either of its faces in view; none at all without a face in view."""
-    layers = scene.sample.layers
-    faces = np.flatnonzero(free_faces)
-    undetermined = []
-    for name in names:
-        parts = name.split(".")
-        if parts[0] != "layers":
-            continue
-        j = next((i for i, layer in enumerate(layers) if layer.name == parts[1]), None)
-        if j is None:
-            continue
-        same = [i for i, layer in enumerate(layers) if i == j or layer.same_as == layers[j].name]
-        key = parts[-1]
-        if key == "thickness_um":
-            ok = any(faces.size and faces.min() <= i and faces.max() >= i + 1 for i in same)
-        elif key in ("sld_e6_per_A2", "sld_end_e6_per_A2", "roughness_mrad"):
-            ok = any(free_faces[i] or free_faces[i + 1] for i in same)
-        else:
-            continue
-        if not ok:
-            undetermined.append(name)
+    """FwdfitError naming every free parameter the faces in view (n_faces,) cannot fix
+    (the geometry's ``undetermined``: for a block a thickness without a face in view on
+    each side of its layer, a layer's SLD without either of its faces in view; for a
+    cylinder also its radius with one wall in view)."""
+    undetermined = geometry_of(scene).undetermined(scene, names, np.asarray(free_faces, bool))
     if undetermined:
+        faces = np.flatnonzero(free_faces)
+        it = "it" if len(undetermined) == 1 else "them"
         shown = ", ".join(f"{n!r}" for n in undetermined)
         in_sight = ", ".join(str(int(f)) for f in faces) or "none"
-        raise FwdfitError(f"{path}: fit.vary: {shown}: the image cannot determine "
-                          f"{'it' if len(undetermined) == 1 else 'them'} (faces in view: {in_sight} of "
-                          f"0-{len(layers)}, left to right); fix {'it' if len(undetermined) == 1 else 'them'} "
+        raise FwdfitError(f"{path}: fit.vary: {shown}: the image cannot determine {it} (faces in view: "
+                          f"{in_sight} of 0-{len(free_faces) - 1}, left to right); fix {it} "
                           "(leave it out of fit.vary, its value in the scene)")

@@ -331,7 +331,7 @@ def edge_centres(scene: Scene, profile: Profile, accuracy: float | None = None,
     flags = np.where(np.isnan(image).mean(axis=1) > _MAX_MASKED, FLAG_MASKED, 0)
     if faces is None:
         faces = find_faces(scene, profile, image, flags == 0, accuracy)
-    estimate = faces.position_um - faces.offsets_um[None, :]  # the centre each face puts the stack at
+    estimate = faces.centres_um()  # the centre each face puts the stack at
     found = np.isfinite(estimate)
     count = found.sum(axis=1)
     flags[(flags == 0) & (count == 0)] = FLAG_NO_EDGE

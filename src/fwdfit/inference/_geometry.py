@@ -105,6 +105,39 @@ class LayeredBlock:
         spread = 0.5 * sample.depth_mm * 1e3 * abs(math.tan(tilt))
         return faces, edge_half_width_um(profile.distance_mm, penumbra, instrument.psf_fwhm_um, spread)
 
+    def sized_for(self, scene, width_um):
+        """An unknown thickness at an equal share of half the window."""
+        layers = scene.sample.layers
+        filled = tuple(dataclasses.replace(l, thickness_um=0.5 * width_um / len(layers))
+                       if math.isnan(l.thickness_um) else l for l in layers)
+        return dataclasses.replace(scene, sample=dataclasses.replace(scene.sample, layers=filled))
+
+    def undetermined(self, scene, names, in_view):
+        """A thickness without a face in view on each side of its layer (face i: layer i's
+        left face), a layer's SLD without either of its faces in view (a layer ``same_as``
+        another counts for it)."""
+        layers = scene.sample.layers
+        faces = np.flatnonzero(in_view)
+        out = []
+        for name in names:
+            parts = name.split(".")
+            if parts[0] != "layers":
+                continue
+            j = next((i for i, layer in enumerate(layers) if layer.name == parts[1]), None)
+            if j is None:
+                continue
+            same = [i for i, layer in enumerate(layers) if i == j or layer.same_as == layers[j].name]
+            key = parts[-1]
+            if key == "thickness_um":
+                ok = any(faces.size and faces.min() <= i and faces.max() >= i + 1 for i in same)
+            elif key in ("sld_e6_per_A2", "sld_end_e6_per_A2", "roughness_mrad"):
+                ok = any(in_view[i] or in_view[i + 1] for i in same)
+            else:
+                continue
+            if not ok:
+                out.append(name)
+        return out
+
 
 GEOMETRIES = {"block": LayeredBlock, "cylinder": Cylinder}  # a scene's [sample] geometry -> its shape
 

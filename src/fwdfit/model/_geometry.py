@@ -5,7 +5,9 @@ A geometry (one folder of ``model/`` each: ``block/``, ...) turns a scene into i
 parameters and forward model, fills in what a fit leaves out before the model is
 planned, refuses measured profiles it cannot read starts off, reads starting values off
 them, moves a candidate to trial tilts for the global scan, and says where its faces
-land on each profile (the quality gate's edge regions). The fitter, the search, the
+land on each profile (the quality gate's edge regions; an image's faces, row by row,
+``images._edges``), sizes an image's face templates and says which free parameters the
+faces in an image's view leave undetermined. The fitter, the search, the
 objective and the outputs call only this; ``inference.geometry_of`` picks the geometry
 of a scene. It lives here, below ``inference/``, so that a geometry's folder implements
 it without importing what sits above it.
@@ -75,4 +77,13 @@ class Geometry(Protocol):
 
     def interfaces(self, scene: Scene, profile: Profile) -> tuple[list[tuple[float, float, str]], float]:
         """Where each interface lands on the profile, (x_from_um, x_to_um, label) each,
-        and the half width (µm) of the region its refraction spreads over."""
+        left to right, and the half width (µm) of the region its refraction spreads over."""
+
+    def sized_for(self, scene: Scene, width_um: float) -> Scene:
+        """The scene with every size a fit leaves out (NaN) filled so that its faces land
+        inside a window ``width_um`` wide (an image's face templates, ``images._edges``)."""
+
+    def undetermined(self, scene: Scene, names: Collection[str], in_view: np.ndarray) -> list[str]:
+        """The free parameters among ``names`` that an image cannot determine when only the
+        faces ``in_view`` (bool per face of ``interfaces``, left to right) show and the
+        centre is fitted per row."""

@@ -250,3 +250,44 @@ class Cylinder:
         faces.sort(key=lambda face: face[0])
         return faces, edge_half_width_um(profile.distance_mm, _penumbra_um(scene, profile), instrument.psf_fwhm_um,
                                          0.0)
+
+    def sized_for(self, scene, width_um):
+        """An unknown radius at a quarter of the window, an unknown shell at a tenth of the radius."""
+        sample = scene.sample
+        radius = 0.25 * width_um if math.isnan(sample.outer_radius_um) else sample.outer_radius_um
+        layers = tuple(dataclasses.replace(l, thickness_um=0.1 * radius) if math.isnan(l.thickness_um) else l
+                       for l in sample.layers)
+        return dataclasses.replace(scene, sample=dataclasses.replace(sample, outer_radius_um=radius,
+                                                                     layers=layers))
+
+    def undetermined(self, scene, names, in_view):
+        """Circle i (0: the rim; each layer's outer circle, a tube's bore the last) shows as
+        faces i and 2 n - 1 - i. The radius needs one circle's two faces (the axis) and a
+        face of the rim; a shell's thickness a face of each of its circles on one side; a
+        layer's SLD a face of one of its circles. One wall in view leaves the radius
+        undetermined: the per-row centre and the radius move its faces alike."""
+        sample = scene.sample
+        n = len(in_view) // 2
+        left, right = np.asarray(in_view[:n], bool), np.asarray(in_view[::-1][:n], bool)
+        seen = left | right
+        out = []
+        for name in names:
+            parts = name.split(".")
+            if name == "sample.outer_radius_um":
+                ok = bool((left & right).any() and seen[0])
+            elif parts[0] == "layers":
+                j = next((i for i, layer in enumerate(sample.layers) if layer.name == parts[1]), None)
+                if j is None:
+                    continue
+                circles = [c for c in (j, j + 1) if c < n]
+                if parts[-1] == "thickness_um":
+                    ok = len(circles) == 2 and bool((left[j] and left[j + 1]) or (right[j] and right[j + 1]))
+                elif parts[-1] in ("sld_e6_per_A2", "sld_end_e6_per_A2", "roughness_mrad"):
+                    ok = any(seen[c] for c in circles)
+                else:
+                    continue
+            else:
+                continue
+            if not ok:
+                out.append(name)
+        return out
