@@ -5,7 +5,7 @@
 Truth: a 1000 µm Al block (2 mm deep, periodictable constants for Al at 2.70 g/cm3),
 tilted by 0.24 deg, at ICON (circular 40 mm aperture at 5.5 m, 2.7 Å line, 15 % FWHM),
 8.5 mm from the detector, 2.4 µm pixels; 500 pixels per row from x = -600 µm. Each file
-comes from one trace of 4e6 rays (exact Snell, float64; ``fwdfit.trace_reference_rows``).
+comes from one trace of 4e7 rays (exact Snell, float64; ``fwdfit.trace_reference_rows``).
 
 - ``T.tif`` (for ``fwdfit fit-image scene.toml``): 32 rows, the block's centre curving
   across them (4 + 6 sin(2 pi row / 32) µm), Gaussian noise of 0.5 % (seed 2026), float32.
@@ -26,7 +26,7 @@ import fwdfit
 
 HERE = Path(__file__).parent
 X0_UM, PIXEL_UM, N_COLS = -600.0, 2.4, 500
-RAYS = 4_000_000
+RAYS = 40_000_000
 DARK, OPEN = 100.0, 4000.0
 
 
