@@ -276,9 +276,9 @@ def test_detector_blur(tmp_path):
     assert abs(np.sum(b.T - a.T)) * 2.4 < 1e-3
 
 
-def test_fit_one_rim_in_view(tmp_path):
-    """A window that shows one rim only (x from 150 to 450 µm): with the radius given, the
-    centre and the shell are fitted from a user's guess (issue 41, item 4: part of a sample)."""
+def _one_rim_files(tmp_path) -> list[str]:
+    """The shell rod (centre 12 µm) seen through a window over its right rim only (x from
+    150 to 450 µm), noise 2e-3 per pixel."""
     truth = _load(tmp_path, _scene_text(SHELL_ROD, centre=12.0), "truth.toml")
     rng = np.random.default_rng(7)
     files = []
@@ -288,14 +288,43 @@ def test_fit_one_rim_in_view(tmp_path):
         np.savetxt(tmp_path / f"{p.name}.csv", np.column_stack([p.x_um[keep], T, np.full_like(T, 2e-3)]),
                    delimiter=",", header="x_um,T,T_err", comments="", fmt="%.8f")
         files.append(f"{p.name}.csv")
-    fit = ('[fit]\nvary = ["sample.centre_um", "layers.oxide.thickness_um", "layers.oxide.sld_e6_per_A2"]\n')
-    guess = SHELL_ROD.replace("thickness_um = 30.0\nsld_e6_per_A2 = 5.0", "thickness_um = 25.0\nsld_e6_per_A2 = 4.0")
-    result = fwdfit.fit(_load(tmp_path, _scene_text(guess, centre=5.0, files=files, fit=fit)))
+    return files
+
+
+ONE_RIM_VARY = '[fit]\nvary = ["sample.centre_um", "layers.oxide.thickness_um", "layers.oxide.sld_e6_per_A2"]\n'
+
+
+def _assert_one_rim_fit(result) -> None:
     values = dict(zip(result.names, result.values))
     assert values["sample.centre_um"] == pytest.approx(12.0, abs=1.0)
     assert values["layers.oxide.thickness_um"] == pytest.approx(30.0, abs=1.0)
     assert values["layers.oxide.sld_e6_per_A2"] == pytest.approx(5.0, rel=0.05)
     assert 0.8 <= result.chi2 / result.dof <= 1.3
+    assert result.quality.passed
+
+
+def test_fit_one_rim_in_view(tmp_path):
+    """A window that shows one rim only: with the radius given, the centre and the shell are
+    fitted from a user's guess (issue 41, item 4: part of a sample)."""
+    files = _one_rim_files(tmp_path)
+    guess = SHELL_ROD.replace("thickness_um = 30.0\nsld_e6_per_A2 = 5.0", "thickness_um = 25.0\nsld_e6_per_A2 = 4.0")
+    _assert_one_rim_fit(fwdfit.fit(_load(tmp_path, _scene_text(guess, centre=5.0, files=files, fit=ONE_RIM_VARY))))
+
+
+def test_fit_one_rim_in_view_from_no_start_values(tmp_path):
+    """One rim in view and the radius given: the centre comes from the rim (the open beam on
+    the brighter end), the shell from its feature inside, no start values at all. With the
+    radius free and no start for it, one line says to give one (one rim cannot tell the radius
+    from the axis)."""
+    files = _one_rim_files(tmp_path)
+    unknown = SHELL_ROD.replace("thickness_um = 30.0\nsld_e6_per_A2 = 5.0\n", "")
+    text = _scene_text(unknown, files=files, fit=ONE_RIM_VARY).replace("centre_um = 0.0\n", "")
+    _assert_one_rim_fit(fwdfit.fit(_load(tmp_path, text)))
+    free_radius = text.replace("outer_radius_um = 300.0\n", "").replace(
+        'vary = ["sample.centre_um"', 'vary = ["sample.outer_radius_um", "sample.centre_um"')
+    with pytest.raises(fwdfit.FwdfitError, match="give sample.outer_radius_um a start value") as error:
+        fwdfit.fit(_load(tmp_path, free_radius, "free_radius.toml"))
+    assert "\n" not in str(error.value)
 
 
 def test_float32_refused(tmp_path, float32):

@@ -66,13 +66,35 @@ def _rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float, float
     inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
     if len(inside) < 2 or inside[0] < n_open or inside[-1] >= len(s) - n_open:
         return None
-    # the ends must be open beam: flat within their noise (inside a sample the chord changes)
+    # the ends must be open beam: flat within their noise (inside a sample the chord changes),
+    # and at one level (a weak absorber's inside is flat too, but below the open beam)
     pixel_noise = float(np.std(np.diff(T))) / math.sqrt(2.0)
     half = n_open // 2
-    for end in (np.asarray(T[:n_open], float), np.asarray(T[-n_open:], float)):
+    ends = (np.asarray(T[:n_open], float), np.asarray(T[-n_open:], float))
+    for end in ends:
         if abs(end[:half].mean() - end[half:].mean()) > 4.0 * pixel_noise / math.sqrt(half) + 1e-5:
             return None
+    if abs(ends[0].mean() - ends[1].mean()) > 4.0 * pixel_noise * math.sqrt(2.0 / n_open) + 1e-5:
+        return None
     return float(x[inside[0]]), float(x[inside[-1]]), level
+
+
+def _one_rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float] | None:
+    """(where the rim lies, side): a profile that shows one rim, its open beam at the end with
+    the higher level (side +1: open on the right, the sample to the left of the rim; -1 the
+    other way); the rim is the outermost point, seen from the open end, where the smoothed
+    profile departs from the open level by ``_FEATURE_FRACTION`` of its largest departure.
+    None where nothing departs beyond the open beam's scatter."""
+    s = _smooth(T, max(pixels, _MIN_SMOOTH_PIXELS))
+    n_open = max(3, int(_OPEN_FRACTION * len(s)))
+    side = 1.0 if np.median(s[-n_open:]) >= np.median(s[:n_open]) else -1.0
+    open_end = s[-n_open:] if side > 0 else s[:n_open]
+    level, noise = float(np.median(open_end)), float(np.std(open_end))
+    deviation = np.abs(s - level)
+    inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
+    if len(inside) == 0:
+        return None
+    return float(x[inside[-1]] if side > 0 else x[inside[0]]), side
 
 
 def _refined_rim(x: np.ndarray, T: np.ndarray, rim: tuple[float, float, float], pixels: int,
@@ -121,13 +143,19 @@ class Cylinder:
         return build_model(scene, accuracy, free, tilt_range_deg)
 
     def check_data(self, scene, T):
-        """A free radius or centre without a start needs a profile that shows both rims."""
+        """A radius without a start needs a profile that shows both rims; a centre without a
+        start one rim at least (with the radius given)."""
         sample = scene.sample
         if math.isfinite(sample.outer_radius_um) and math.isfinite(sample.centre_um):
             return
-        if not any(_rim(p.x_um, t, self._pixels(scene, p)) for p, t in zip(scene.profiles, T)):
-            raise FwdfitError(f"{scene.path}: no profile shows both rims of the cylinder: give "
-                              "sample.outer_radius_um and sample.centre_um start values")
+        if any(_rim(p.x_um, t, self._pixels(scene, p)) for p, t in zip(scene.profiles, T)):
+            return
+        if math.isnan(sample.outer_radius_um):
+            raise FwdfitError(f"{scene.path}: no profile shows both rims of the cylinder, so the radius cannot "
+                              "be read off the data: give sample.outer_radius_um a start value")
+        if not any(_one_rim(p.x_um, t, self._pixels(scene, p)) for p, t in zip(scene.profiles, T)):
+            raise FwdfitError(f"{scene.path}: no profile shows a rim of the cylinder: give sample.centre_um "
+                              "a start value")
 
     @staticmethod
     def _pixels(scene, profile) -> int:
@@ -154,6 +182,8 @@ class Cylinder:
                 centre = values[by_name["centre_um"].name] = float(np.median(centres))
             if "outer_radius_um" in by_name:
                 radius = values[by_name["outer_radius_um"].name] = 0.5 * (right - left) / M
+        elif "centre_um" in by_name and math.isnan(centre) and math.isfinite(radius):
+            centre = values[by_name["centre_um"].name] = self._centre_from_one_rim(scene, T, radius)
         pinned = [by_name[k].name for k in ("centre_um", "outer_radius_um") if k in by_name]
         thickness_names = []
         for p in free:
@@ -172,6 +202,19 @@ class Cylinder:
             elif field in ("shift_um", "density_scale", "norm") and math.isnan(values[p.name]):
                 values[p.name] = registry.BY_KEY[field].default
         return Estimate(values, tuple(thickness_names), (), tuple(pinned))
+
+    def _centre_from_one_rim(self, scene, T, radius: float) -> float:
+        """The axis from the rim of the nearest profile that shows one (a window over one side
+        of the sample) and the radius: the rim's steepest flank, r from it towards the sample."""
+        shown = [(i, rim) for i, (p, t) in enumerate(zip(scene.profiles, T))
+                 if (rim := _one_rim(p.x_um, t, self._pixels(scene, p))) is not None]
+        i, (edge, side) = min(shown, key=lambda item: scene.profiles[item[0]].distance_mm)
+        p = scene.profiles[i]
+        reach = edge_half_width_um(p.distance_mm, _penumbra_um(scene, p),
+                                   scene.instruments[p.instrument].psf_fwhm_um, 0.0)
+        flanks = _refined_rim(p.x_um, T[i], (edge, edge, 0.0), self._pixels(scene, p), reach)
+        rim = flanks[1] if side > 0 else flanks[0]
+        return rim / _magnification(scene, p) - _axis_um(scene, p, 0.0) - side * radius
 
     def _shell(self, scene, T, usable, centre, radius, layer) -> float:
         """A shell's thickness from the strongest slope of the sharpest profile inside the
