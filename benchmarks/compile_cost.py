@@ -1,6 +1,7 @@
 """What a program of the shipped example costs to build: per group of profiles, the traced
 graph's size (jaxpr equations, nested ones counted), its compile time and evaluation time,
-and the same for its exact forward-mode Jacobian (``jax.jacfwd`` in the free values).
+and the same for its exact forward-mode Jacobian (``jax.jacfwd`` in the free values) and
+for one Jacobian-vector product (``jax.jvp``, one tangent: a column's own cost).
 
 The baseline of issue 43 (a compact program): a graph whose size does not grow with the
 profiles, groups and faces, and a Jacobian that compiles in at most twice the forward
@@ -73,16 +74,22 @@ def main() -> None:
 
         compile_s, eval_ms = _timed(forward, values)
         jac_compile_s, jac_eval_ms = _timed(jax.jacfwd(forward), values)
+        # one tangent: what each column of the Jacobian costs on its own
+        along = jax.numpy.ones_like(values)
+        jvp_compile_s, jvp_eval_ms = _timed(lambda v, forward=forward: jax.jvp(forward, (v,), (along,)), values)
         groups.append({"profiles": list(group.index), "pixels": int(forward(values).shape[0]),
                        "equations": _equations(jax.make_jaxpr(forward)(values).jaxpr),
                        "jacobian_equations": _equations(jax.make_jaxpr(jax.jacfwd(forward))(values).jaxpr),
                        "compile_s": round(compile_s, 2), "eval_ms": round(eval_ms, 2),
-                       "jacobian_compile_s": round(jac_compile_s, 2), "jacobian_eval_ms": round(jac_eval_ms, 2)})
+                       "jacobian_compile_s": round(jac_compile_s, 2), "jacobian_eval_ms": round(jac_eval_ms, 2),
+                       "jvp_compile_s": round(jvp_compile_s, 2), "jvp_eval_ms": round(jvp_eval_ms, 2)})
         print(groups[-1], flush=True)
     total = {key: round(sum(g[key] for g in groups), 2) for key in
-             ("equations", "compile_s", "eval_ms", "jacobian_compile_s", "jacobian_eval_ms")}
+             ("equations", "compile_s", "eval_ms", "jacobian_compile_s", "jacobian_eval_ms", "jvp_compile_s",
+              "jvp_eval_ms")}
     total["jacobian_compile_ratio"] = round(total["jacobian_compile_s"] / total["compile_s"], 2)
     total["jacobian_eval_in_forward_evaluations"] = round(total["jacobian_eval_ms"] / total["eval_ms"], 1)
+    total["jvp_eval_in_forward_evaluations"] = round(total["jvp_eval_ms"] / total["eval_ms"], 1)
     record = {"scene": "examples/al_block", "n_free": len(free), "groups": groups, "total": total,
               "machine": machine_record()}
     write_result("compile_cost", record, quick)
