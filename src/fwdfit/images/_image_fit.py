@@ -378,10 +378,21 @@ class _Binning:
     def bin_offset_px(self, k: int) -> float:
         return (k + 0.5) / _BINS - 0.5
 
-    def assign(self, centres: np.ndarray, pixel_um: float) -> tuple[np.ndarray, np.ndarray]:
+    def reference_um(self, centres: np.ndarray, use: np.ndarray, pixel_um: float) -> float:
+        """Where the rows are moved to: ``centre_um``, unless a row would need a whole-pixel
+        shift past the crop margin; then ``centre_um`` moved by the whole pixels of the rows'
+        median offset from it. The first round's centres, from the edges, can all lie off the
+        fitted ones (a tube wall whose thickness starts 20 µm off puts them 10 µm off): moved to
+        ``centre_um``, the fitted rows would be clipped at the margin and averaged misaligned."""
+        offsets = (centres[use] - self.centre_um) / pixel_um
+        if offsets.size == 0 or np.max(np.abs(np.round(offsets))) <= self.margin - 1:
+            return self.centre_um
+        return self.centre_um + float(np.round(np.median(offsets))) * pixel_um
+
+    def assign(self, centres: np.ndarray, pixel_um: float, reference_um: float) -> tuple[np.ndarray, np.ndarray]:
         """Whole-pixel shift (rows,) and bin (rows,) of each row: the existing bin nearest its
-        offset (a bin in the next pixel counts, with the whole shift changed)."""
-        offsets = (centres - self.centre_um) / pixel_um
+        offset from ``reference_um`` (a bin in the next pixel counts, with the whole shift changed)."""
+        offsets = (centres - reference_um) / pixel_um
         options = np.array([[self.bin_offset_px(k) + w for w in (-1, 0, 1)] for k in self.bins])  # (B, 3)
         whole = np.round(offsets)
         fraction = offsets - whole
@@ -392,10 +403,10 @@ class _Binning:
         shift = np.clip(shift, -(self.margin), self.margin)
         return shift, np.asarray(self.bins)[b]
 
-    def profiles(self, profile: Profile, centres, use, sigma, pixel_um) -> list[Profile]:
+    def profiles(self, profile: Profile, centres, use, sigma, pixel_um, reference_um: float) -> list[Profile]:
         """One profile per bin (x_um cropped, shift_um at the bin's offset) holding the
-        error-weighted mean of its rows (``use``), T_err that of the mean."""
-        shift, which = self.assign(np.where(use, centres, self.centre_um), pixel_um)
+        error-weighted mean of its rows (``use``) moved to ``reference_um``, T_err that of the mean."""
+        shift, which = self.assign(np.where(use, centres, reference_um), pixel_um, reference_um)
         n = profile.image.shape[1]
         columns = np.arange(self.margin, n - self.margin)
         weight = np.where(np.isfinite(sigma), 1.0 / sigma ** 2, 0.0)
@@ -515,7 +526,8 @@ def fit_image(scene: Scene | str, *, accuracy: float | None = None, rounds: int 
     fitter = rows = shared = None
     compile_time, row_time = faces.compile_time_s, 0.0
     for round_ in range(rounds):
-        profiles = binning.profiles(profile, centres, use, sigma, pixel)
+        reference = binning.reference_um(centres, use, pixel)
+        profiles = binning.profiles(profile, centres, use, sigma, pixel, reference)
         weighted = sum(int(np.count_nonzero(p.T_err < _NO_WEIGHT)) for p in profiles)
         if fitter is None:
             say(f"compiling the model for {len(profiles)} averaged profiles, then for one row "
