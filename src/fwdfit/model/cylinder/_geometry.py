@@ -53,17 +53,30 @@ def _smooth(T: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(padded, np.ones(n) / n, mode="same")[n:-n]
 
 
+def _smoothed_with_open_ends(T: np.ndarray, pixels: int) -> tuple[np.ndarray, int]:
+    """The profile's running mean (``_rim``'s smoothing) and how many points at each end are
+    taken as open beam."""
+    s = _smooth(T, max(pixels, _MIN_SMOOTH_PIXELS))
+    return s, max(3, int(_OPEN_FRACTION * len(s)))
+
+
+def _departures(s: np.ndarray, open_beam: np.ndarray) -> tuple[float, np.ndarray]:
+    """(open level, indices): where the smoothed profile ``s`` departs from the median of
+    ``open_beam`` by ``_FEATURE_FRACTION`` of its largest departure and by more than
+    ``_NOISE_FACTOR`` times the open beam's scatter."""
+    level = float(np.median(open_beam))
+    deviation = np.abs(s - level)
+    threshold = max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * float(np.std(open_beam)))
+    return level, np.nonzero(deviation >= threshold)[0]
+
+
 def _rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float, float] | None:
     """(left, right, open level): the outermost points where the smoothed profile departs
     from its open level by ``_FEATURE_FRACTION`` of its largest departure; None where the
     profile shows no rim on a side."""
-    s = _smooth(T, max(pixels, _MIN_SMOOTH_PIXELS))
-    n_open = max(3, int(_OPEN_FRACTION * len(s)))
+    s, n_open = _smoothed_with_open_ends(T, pixels)
     open_beam = np.concatenate([s[:n_open], s[-n_open:]])
-    level = float(np.median(open_beam))
-    deviation = np.abs(s - level)
-    noise = float(np.std(open_beam))
-    inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
+    level, inside = _departures(s, open_beam)
     if len(inside) < 2 or inside[0] < n_open or inside[-1] >= len(s) - n_open:
         return None
     # the ends must be open beam: flat within their noise (inside a sample the chord changes),
@@ -85,13 +98,9 @@ def _one_rim(x: np.ndarray, T: np.ndarray, pixels: int) -> tuple[float, float] |
     other way); the rim is the outermost point, seen from the open end, where the smoothed
     profile departs from the open level by ``_FEATURE_FRACTION`` of its largest departure.
     None where nothing departs beyond the open beam's scatter."""
-    s = _smooth(T, max(pixels, _MIN_SMOOTH_PIXELS))
-    n_open = max(3, int(_OPEN_FRACTION * len(s)))
+    s, n_open = _smoothed_with_open_ends(T, pixels)
     side = 1.0 if np.median(s[-n_open:]) >= np.median(s[:n_open]) else -1.0
-    open_end = s[-n_open:] if side > 0 else s[:n_open]
-    level, noise = float(np.median(open_end)), float(np.std(open_end))
-    deviation = np.abs(s - level)
-    inside = np.nonzero(deviation >= max(_FEATURE_FRACTION * deviation.max(), _NOISE_FACTOR * noise))[0]
+    _, inside = _departures(s, s[-n_open:] if side > 0 else s[:n_open])
     if len(inside) == 0:
         return None
     return float(x[inside[-1]] if side > 0 else x[inside[0]]), side
@@ -106,14 +115,20 @@ def _refined_rim(x: np.ndarray, T: np.ndarray, rim: tuple[float, float, float], 
     (25 µm wide on 5 µm pixels) plus the reflected rays' spread (up to 2 theta_c Delta): an
     Al rod's radius came out 14 µm large in 4 Å bins at 5 mm, outside the fit's basin of a
     weak absorber."""
+    return (_steepest_flank(x, T, rim[0], -1.0, pixels, reach_um),
+            _steepest_flank(x, T, rim[1], 1.0, pixels, reach_um))
+
+
+def _steepest_flank(x: np.ndarray, T: np.ndarray, edge_um: float, outwards: float, pixels: int,
+                    reach_um: float) -> float:
+    """One side of ``_refined_rim``: where the lightly smoothed profile rises most steeply
+    towards ``outwards`` (+1: increasing x), from ``reach_um`` inside the smoothed flank at
+    ``edge_um`` to half the smoothing window outside it; the flank itself where too few points
+    lie there."""
     slope = np.gradient(_smooth(T, pixels), x)
-    pixel = float(np.median(np.diff(x)))
-    half = 0.5 * max(pixels, _MIN_SMOOTH_PIXELS) * pixel
-    sides = []
-    for edge, sign in ((rim[0], -1.0), (rim[1], 1.0)):
-        near = (sign * (x - edge) <= half) & (sign * (x - edge) >= -(reach_um + half))
-        sides.append(float(x[near][np.argmax(sign * slope[near])]) if near.sum() >= 3 else edge)
-    return sides[0], sides[1]
+    half = 0.5 * max(pixels, _MIN_SMOOTH_PIXELS) * float(np.median(np.diff(x)))
+    near = (outwards * (x - edge_um) <= half) & (outwards * (x - edge_um) >= -(reach_um + half))
+    return float(x[near][np.argmax(outwards * slope[near])]) if near.sum() >= 3 else edge_um
 
 
 class Cylinder:
@@ -212,8 +227,7 @@ class Cylinder:
         p = scene.profiles[i]
         reach = edge_half_width_um(p.distance_mm, _penumbra_um(scene, p),
                                    scene.instruments[p.instrument].psf_fwhm_um, 0.0)
-        flanks = _refined_rim(p.x_um, T[i], (edge, edge, 0.0), self._pixels(scene, p), reach)
-        rim = flanks[1] if side > 0 else flanks[0]
+        rim = _steepest_flank(p.x_um, T[i], edge, side, self._pixels(scene, p), reach)
         return rim / _magnification(scene, p) - _axis_um(scene, p, 0.0) - side * radius
 
     def _shell(self, scene, T, usable, centre, radius, layer) -> float:
