@@ -8,7 +8,8 @@ same scene as a 1 mm x 1 mm Al block (the rod's width and diameter). For each, i
 float64, one side by side run: plan time, compile and evaluation time of T and T_att for
 every profile, and compile and evaluation time of one forward-mode Jacobian column per
 free parameter (what a solver step needs: the radius or thickness, the SLD, the
-centre). Issue 41 asks for the rod within 2x of the block. Writes
+centre). Issue 41 asks for the rod within 2x of the block. A third row: the rod with
+Fresnel partial reflection (``fresnel = true``, 2S + 1 branches per ray). Writes
 benchmarks/results/cylinder_cost.json (quick: 2 profiles, fewer repeats).
 """
 
@@ -35,6 +36,12 @@ def _block_of(scene):
     return dataclasses.replace(scene, sample=sample)
 
 
+def _with_fresnel(scene):
+    """The scene with Fresnel partial reflection on every instrument."""
+    return dataclasses.replace(scene, instruments={name: dataclasses.replace(i, fresnel=True)
+                                                   for name, i in scene.instruments.items()})
+
+
 def _cost(scene, free: tuple[str, ...], repeats: int) -> dict:
     import equinox as eqx
     import jax
@@ -56,7 +63,8 @@ def _cost(scene, free: tuple[str, ...], repeats: int) -> dict:
 
     zero = [jnp.zeros_like(getattr(params, f)) for f in free]
     jacobian = lambda values: jax.jacfwd(predict)(values)
-    row = {"geometry": scene.sample.geometry, "profiles": len(scene.profiles),
+    row = {"geometry": scene.sample.geometry,
+           "fresnel": any(i.fresnel for i in scene.instruments.values()), "profiles": len(scene.profiles),
            "pixels": int(sum(len(p.x_um) for p in scene.profiles)), "plan_s": round(plan_s, 3)}
     for name, function in (("eval", predict), ("jacobian", jacobian)):
         start = time.perf_counter()
@@ -83,17 +91,21 @@ def main() -> None:
     if args.quick:
         rod = dataclasses.replace(rod, profiles=rod.profiles[:2])
     repeats = 3 if args.quick else 10
-    rows = [_cost(rod, ("outer_radius_um", "sld_e6_per_A2", "centre_um"), repeats),
-            _cost(_block_of(rod), ("thickness_um", "sld_e6_per_A2", "centre_um"), repeats)]
-    ratios = {key: round(rows[0][key] / rows[1][key], 2)
-              for key in ("eval_compile_s", "eval_ms", "jacobian_compile_s", "jacobian_ms")}
+    rod_free = ("outer_radius_um", "sld_e6_per_A2", "centre_um")
+    rows = [_cost(rod, rod_free, repeats),
+            _cost(_block_of(rod), ("thickness_um", "sld_e6_per_A2", "centre_um"), repeats),
+            _cost(_with_fresnel(rod), rod_free, repeats)]
+    keys = ("eval_compile_s", "eval_ms", "jacobian_compile_s", "jacobian_ms")
+    ratios = {key: round(rows[0][key] / rows[1][key], 2) for key in keys}
+    fresnel = {key: round(rows[2][key] / rows[0][key], 2) for key in keys}
     result = {"scene": str(ROD.relative_to(ROOT)), "rows": rows, "rod_over_block": ratios,
-              "machine": machine_record()}
+              "fresnel_over_rod": fresnel, "machine": machine_record()}
     out = results_dir(args.quick) / "cylinder_cost.json"
     out.write_text(json.dumps(result, indent=1) + "\n")
     for row in rows:
         print(row)
     print("rod / block:", ratios)
+    print("rod with Fresnel / rod:", fresnel)
     print(f"wrote {out}")
 
 

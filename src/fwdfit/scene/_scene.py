@@ -343,11 +343,6 @@ def _check_combinations(path: Path, sample: Sample, instruments: dict[str, Instr
                 f"{path}: {'instruments.' + name if name else 'instrument'}.psf_fwhm_um: "
                 f"{instrument.psf_fwhm_um:g} is more than {MAX_PSF_PIXELS:g} pixels of "
                 f"{instrument.pixel_um:g} um ({SEE})")
-    if sample.geometry == "cylinder":
-        for name, instrument in instruments.items():
-            if instrument.fresnel:
-                raise FwdfitError(f"{path}: {'instruments.' + name if name else 'instrument'}.fresnel: a cylinder "
-                                  "has no Fresnel partial reflection in the model yet (set fresnel = false)")
     tilt = math.radians(sample.tilt_deg)
     width_mm = 1e-3 * sum(t for t in (layer.thickness_um for layer in sample.layers) if math.isfinite(t))
     reach = 0.5 * sample.depth_mm + 0.5 * width_mm * abs(math.sin(tilt))

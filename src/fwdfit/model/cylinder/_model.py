@@ -37,7 +37,7 @@ from jaxtyping import Array, Float
 
 from .._aperture import APERTURES
 from .._grouped import GroupedModel
-from ._rays import chords, trace
+from ._rays import chords, fresnel_trace, trace
 
 
 
@@ -78,6 +78,7 @@ class CylinderGroup(eqx.Module):
     n_sub: int = eqx.field(static=True)
     aperture_cells: int = eqx.field(static=True)
     psf_cells: int = eqx.field(static=True)
+    fresnel: bool = eqx.field(static=True)  # Fresnel partial reflection at every circle (``_rays.fresnel_trace``)
     first_cell_um: Float[Array, " group"]  # centre of each profile's first (padding) cell
     wavelength_A: Float[Array, "group lam"]
     wavelength_weight: Float[Array, "group lam"]
@@ -203,14 +204,21 @@ def _profile(group: CylinderGroup, model: CylinderModel, params: CylinderParams,
     wavelength_A, wavelength_weight, table = spectrum
     sld, mu = _media(model, params, wavelength_A, table)
     index = jnp.sqrt(1.0 - wavelength_A[:, None] ** 2 * sld[None, :] * 1e-6 / jnp.pi)  # (l, S)
-    eps, depth = jax.vmap(lambda n, m: trace(b, radii, n, m))(index, mu)  # (l, N)
-    flux = wavelength_weight[:, None] * width[None, :] * jnp.exp(-depth)
+    if group.fresnel:  # (l, N, branches)
+        eps, depth, share = jax.vmap(lambda n, m: fresnel_trace(b, radii, n, m))(index, mu)
+        flux = (wavelength_weight[:, None] * width[None, :])[..., None] * share * jnp.exp(-depth)
+        along = lambda values: values[:, None]
+    else:  # (l, N)
+        eps, depth = jax.vmap(lambda n, m: trace(b, radii, n, m))(index, mu)
+        flux = wavelength_weight[:, None] * width[None, :] * jnp.exp(-depth)
+        along = lambda values: values
     straight = magnification * centre + magnification * b  # the +b side; -b mirrored
     n_cells = group.n_pixel * group.n_sub + 2 * group.n_pad
-    landing = jnp.concatenate([(straight + distance_um * eps).ravel(),
-                               (magnification * centre - magnification * b - distance_um * eps).ravel()])
+    mirrored = magnification * centre - magnification * b
+    landing = jnp.concatenate([(along(straight) + distance_um * eps).ravel(),
+                               (along(mirrored) - distance_um * eps).ravel()])
     deposit = _deposit(n_cells, first_cell_um, group.cell_um, landing, jnp.concatenate([flux.ravel()] * 2))
-    undeviated = jnp.concatenate([straight, magnification * centre - magnification * b])
+    undeviated = jnp.concatenate([straight, mirrored])
     reference = _deposit(n_cells, first_cell_um, group.cell_um, undeviated, jnp.concatenate([-width] * 2))
     # T_att at the cells themselves (straight chords through the points the cells see): no
     # ray quadrature, whose weights near a circle would not cancel as T's do

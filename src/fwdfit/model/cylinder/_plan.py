@@ -154,6 +154,7 @@ def build_model(scene: Scene, accuracy: float | None = None, free: Collection[st
             aperture_distance_um=instrument.aperture_distance_m * 1e6,
             psf_sigma_um=instrument.psf_fwhm_um / _FWHM_PER_SIGMA, cell_um=cell, n_pixel=n_pixel,
             n_sub=_sub_cells(accuracy), aperture_cells=aperture_cells, psf_cells=psf_cells,
+            fresnel=instrument.fresnel,
             first_cell_um=to_device([per_profile[i][0] - n_pad * cell for i in index]),
             wavelength_A=stack(1), wavelength_weight=stack(2), mu_table_per_m=stack(3),
             att_wavelength_A=stack(4), att_weight=stack(5), att_mu_table_per_m=stack(6)))

@@ -37,12 +37,10 @@ def _half_chord(p, r):
     return jnp.where(inside, jnp.sqrt(jnp.where(inside, square, 1.0)), 0.0)
 
 
-def trace(b, radii, n, mu):
-    """Outward deflection (rad) and optical depth of rays at impact parameters b.
-
-    b (B,) µm >= 0; radii (S+1,) µm, decreasing, radii[S] = 0 (the core's centre); n (S,)
-    refractive indices; mu (S,) 1/µm. Returns eps (B,), depth (B,).
-    """
+def _shells(b, radii, n):
+    """Per shell of rays at impact parameters b (B,): the polar sweep (B, S) and half-length
+    (B, S) µm of the ray's piece in it, and whether the ray reaches it (B, S) bool; and the
+    sweep outside the sample (B,). radii, n: as ``trace``."""
     outer, inner = radii[:-1], radii[1:]
     p = b[:, None] / n[None, :]  # (B, S): the chord's distance from the axis in each shell
     turns = p >= inner[None, :]
@@ -54,10 +52,58 @@ def trace(b, radii, n, mu):
     # shell k is reached if every shell before it was crossed (entered, not turned in) and k is entered
     passes = jnp.concatenate([jnp.ones_like(turns[:, :1]), ~turns[:, :-1]], axis=1) & enters
     reached = jnp.cumprod(passes, axis=1).astype(bool) & hit[:, None]
-    total = jnp.where(hit, 0.5 * jnp.pi - _polar(b, radii[0]), 0.5 * jnp.pi) + jnp.sum(
-        jnp.where(reached, sweep, 0.0), axis=1)
+    outside = jnp.where(hit, 0.5 * jnp.pi - _polar(b, radii[0]), 0.5 * jnp.pi)
+    return outside, jnp.where(reached, sweep, 0.0), length, reached
+
+
+def trace(b, radii, n, mu):
+    """Outward deflection (rad) and optical depth of rays at impact parameters b.
+
+    b (B,) µm >= 0; radii (S+1,) µm, decreasing, radii[S] = 0 (the core's centre); n (S,)
+    refractive indices; mu (S,) 1/µm. Returns eps (B,), depth (B,).
+    """
+    outside, sweep, length, reached = _shells(b, radii, n)
     depth = 2.0 * jnp.sum(jnp.where(reached, mu[None, :] * length, 0.0), axis=1)
-    return jnp.pi - 2.0 * total, depth
+    return jnp.pi - 2.0 * (outside + jnp.sum(sweep, axis=1)), depth
+
+
+def fresnel_trace(b, radii, n, mu):
+    """``trace`` with Fresnel partial reflection at every circle a ray crosses, to first order:
+    its branches (B, 2S + 1) of deflection (rad), optical depth and share of the ray.
+
+    Crossing circle k (into shell k, at the same grazing angle on the way out) reflects the
+    share R_k = ((q - q_k) / (q + q_k))^2, q_k = sqrt(n_k^2 - (b / r_k)^2) and q that of the
+    medium outside circle k (Snell's normal wave-vector components; R_k -> 1 at the critical
+    angle, where the ray's total reflection takes over). Branches: the ray reflected by no
+    circle (share prod (1 - R_k)^2); reflected back out at circle k instead of entering it
+    (R_k times the crossings before it); reflected once inside circle k on its way out, which
+    adds a second pass through circle k (R_k times every crossing: circle k's and those outside
+    it twice, those inside it four times). A reflection preserves b, so every branch lands
+    as a ray does (``_model``); multiple reflections (order R^2) are left out.
+    """
+    outside, sweep, length, reached = _shells(b, radii, n)
+    attenuation = jnp.where(reached, mu[None, :] * length, 0.0)
+    n_outside = jnp.concatenate([jnp.ones((1,), n.dtype), n[:-1]])
+    along = b[:, None] / jnp.where(radii[:-1] > 0, radii[:-1], 1.0)[None, :]  # b / r_k, (B, S)
+    normal = lambda index: jnp.sqrt(jnp.maximum(index[None, :] ** 2 - along**2, 1e-30))
+    q_out, q_in = normal(n_outside), normal(n)
+    R = jnp.where(reached, jnp.square((q_out - q_in) / (q_out + q_in)), 0.0)
+    kept = jnp.square(1.0 - R)  # both crossings of circle k
+    before = jnp.cumprod(jnp.concatenate([jnp.ones_like(kept[:, :1]), kept[:, :-1]], axis=1), axis=1)
+    inward = kept[:, ::-1]  # circles inside k, both crossings:
+    after = jnp.cumprod(jnp.concatenate([jnp.ones_like(kept[:, :1]), inward[:, :-1]], axis=1), axis=1)[:, ::-1]
+    half_sweep = outside + jnp.sum(sweep, axis=1)
+    half_depth = jnp.sum(attenuation, axis=1)
+    inner_sweep = jnp.cumsum(sweep[:, ::-1], axis=1)[:, ::-1]  # from circle k to the nearest point
+    inner_depth = jnp.cumsum(attenuation[:, ::-1], axis=1)[:, ::-1]
+    outer_sweep = outside[:, None] + jnp.cumsum(sweep, axis=1) - sweep  # to circle k
+    outer_depth = jnp.cumsum(attenuation, axis=1) - attenuation
+    eps = jnp.concatenate([(jnp.pi - 2.0 * half_sweep)[:, None], jnp.pi - 2.0 * outer_sweep,
+                           jnp.pi - 2.0 * (half_sweep[:, None] + inner_sweep)], axis=1)
+    depth = 2.0 * jnp.concatenate([half_depth[:, None], outer_depth, half_depth[:, None] + inner_depth], axis=1)
+    share = jnp.concatenate([(before[:, -1] * kept[:, -1])[:, None], before * R,
+                             before * kept * R * after * after], axis=1)
+    return eps, depth, share
 
 
 def chords(b, radii):
