@@ -7,9 +7,9 @@ against the references, the Paganin filter's best b, ...), so an error in any ce
 assertions included, fails the test.
 
 The kernels import the same fwdfit as this test session (its folder goes first on
-their PYTHONPATH) and share one JAX persistent compilation cache in a temporary
-folder: fits that two notebooks compile identically (01 and 02, 03 and 04) are
-compiled once. Runtime on two CPU cores: a few minutes for all eight, most of it the
+their PYTHONPATH) and share the test session's compilation cache folder: fits that
+two notebooks (or a notebook and a test) compile identically (01 and 02, 03 and 04)
+are compiled once. Runtime on two CPU cores: a few minutes for all eight, most of it the
 fits' compilation (marked slow; ``-m "not slow"`` leaves them out).
 """
 
@@ -32,12 +32,12 @@ CELL_TIMEOUT_S = 600
 
 
 @pytest.fixture(scope="module")
-def kernel_env(tmp_path_factory):
-    """Environment of the notebook kernels: this session's fwdfit, a shared compilation cache."""
+def kernel_env():
+    """Environment of the notebook kernels: this session's fwdfit, and the session's
+    compilation cache (``conftest.py``) for JAX's programs as for fwdfit's."""
     package_root = str(Path(fwdfit.__file__).resolve().parents[1])
     python_path = os.pathsep.join(p for p in (package_root, os.environ.get("PYTHONPATH")) if p)
-    return dict(os.environ, PYTHONPATH=python_path,
-                JAX_COMPILATION_CACHE_DIR=str(tmp_path_factory.mktemp("jax_cache")))
+    return dict(os.environ, PYTHONPATH=python_path, JAX_COMPILATION_CACHE_DIR=os.environ["FWDFIT_CACHE_DIR"])
 
 
 def test_notebooks_found():
