@@ -17,7 +17,9 @@ reach, which spans four steps of the uniform grid, so that the uniform grid reso
 weight moves with the radii. Each ray's weight (spectrum weight x exp(-depth) x its
 width in b) is deposited on a grid of sub-pixel cells by cloud-in-cell, minus the
 same ray undeviated and unattenuated (so the open beam, and every ray beyond the sample,
-adds exactly nothing, whatever part of the sample the profile shows); the cells are
+adds exactly nothing, whatever part of the sample the profile shows); with Fresnel partial
+reflection (the group's ``fresnel``) each ray is its reflected and unreflected branches
+(``_rays.fresnel_trace``), each deposited so, the undeviated ray subtracted once; the cells are
 convolved with the penumbra and the detector's Gaussian blur and averaged into pixels.
 T_att is exp(-sum mu_k chord_k) at each cell's point of the sample plane (n = 1, straight
 chords), on finer wavelength nodes, convolved alike.
