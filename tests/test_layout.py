@@ -37,6 +37,7 @@ RANKS = {
 }
 
 ROOT = Path(__file__).resolve().parents[1]
+LAYOUT_DATA = Path(__file__).parent / "data" / "layout"  # inputs of the checks' own tests
 PACKAGE = ROOT / "src" / "fwdfit"
 
 
@@ -203,17 +204,7 @@ def test_the_check_fails_on_an_upward_import_and_a_cycle(tmp_path):
     two inference modules importing each other (one inside a function), an import of a
     missing module and a folder without a rank is refused on each count."""
     package = tmp_path / "fwdfit"
-    files = {
-        "__init__.py": '_PUBLIC = {"fit": "inference._a"}\n',
-        "_errors.py": "",
-        "scene/__init__.py": "",
-        "scene/_scene.py": "from ..inference._a import fit\n",
-        "inference/__init__.py": "",
-        "inference/_a.py": "from ._b import g\n\ndef fit():\n    pass\n",
-        "inference/_b.py": "def g():\n    from ._a import fit\n",
-        "cli/__init__.py": "from .. import fit\nfrom ..scene import _gone\n",
-        "extra/__init__.py": "",
-    }
+    files = json.loads((LAYOUT_DATA / "package.json").read_text())  # path -> source of a small package
     for name, text in files.items():
         (package / name).parent.mkdir(parents=True, exist_ok=True)
         (package / name).write_text(text)
@@ -281,9 +272,9 @@ def test_tests_benchmarks_and_notebooks_import_public_names_only():
 
 
 def test_the_private_name_check_fails_on_each_form():
-    code = ("import fwdfit._plan as plan\nfrom fwdfit._kernel import landing_range\n"
-            "from fwdfit.model import _kernel\nfwdfit._plan._ROUGH_SAMPLES\n"
-            "monkeypatch.setattr('fwdfit.inference._fit.x', 1)\nfrom fwdfit import __version__\n")
+    """Each form of a private use, one per line of ``data/layout/private_name_forms.txt`` (kept
+    out of this file, which the check reads too); its last line, a public name, passes."""
+    code = (LAYOUT_DATA / "private_name_forms.txt").read_text()
     assert sorted({line for line, _ in _private_uses(ast.parse(code))}) == [1, 2, 3, 4, 5]
 
 
