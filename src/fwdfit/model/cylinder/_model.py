@@ -206,13 +206,14 @@ def _profile(group: CylinderGroup, model: CylinderModel, params: CylinderParams,
     wavelength_A, wavelength_weight, table = spectrum
     sld, mu = _media(model, params, wavelength_A, table)
     index = jnp.sqrt(1.0 - wavelength_A[:, None] ** 2 * sld[None, :] * 1e-6 / jnp.pi)  # (l, S)
+    weight = wavelength_weight[:, None] * width[None, :]  # (l, N)
     if group.fresnel:  # (l, N, branches)
         eps, depth, share = jax.vmap(lambda n, m: fresnel_trace(b, radii, n, m))(index, mu)
-        flux = (wavelength_weight[:, None] * width[None, :])[..., None] * share * jnp.exp(-depth)
+        flux = weight[..., None] * share * jnp.exp(-depth)
         along = lambda values: values[:, None]
     else:  # (l, N)
         eps, depth = jax.vmap(lambda n, m: trace(b, radii, n, m))(index, mu)
-        flux = wavelength_weight[:, None] * width[None, :] * jnp.exp(-depth)
+        flux = weight * jnp.exp(-depth)
         along = lambda values: values
     straight = magnification * centre + magnification * b  # the +b side; -b mirrored
     n_cells = group.n_pixel * group.n_sub + 2 * group.n_pad

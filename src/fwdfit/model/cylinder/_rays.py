@@ -37,10 +37,10 @@ def _half_chord(p, r):
     return jnp.where(inside, jnp.sqrt(jnp.where(inside, square, 1.0)), 0.0)
 
 
-def _shells(b, radii, n):
-    """Per shell of rays at impact parameters b (B,): the polar sweep (B, S) and half-length
-    (B, S) µm of the ray's piece in it, and whether the ray reaches it (B, S) bool; and the
-    sweep outside the sample (B,). radii, n: as ``trace``."""
+def _shells(b, radii, n, mu):
+    """Per shell of rays at impact parameters b (B,): the polar sweep (B, S) and optical depth
+    (B, S) of the ray's half in it (0 where the ray does not reach it), and whether the ray
+    reaches it (B, S) bool; and the sweep outside the sample (B,). radii, n, mu: as ``trace``."""
     outer, inner = radii[:-1], radii[1:]
     p = b[:, None] / n[None, :]  # (B, S): the chord's distance from the axis in each shell
     turns = p >= inner[None, :]
@@ -53,7 +53,7 @@ def _shells(b, radii, n):
     passes = jnp.concatenate([jnp.ones_like(turns[:, :1]), ~turns[:, :-1]], axis=1) & enters
     reached = jnp.cumprod(passes, axis=1).astype(bool) & hit[:, None]
     outside = jnp.where(hit, 0.5 * jnp.pi - _polar(b, radii[0]), 0.5 * jnp.pi)
-    return outside, jnp.where(reached, sweep, 0.0), length, reached
+    return outside, jnp.where(reached, sweep, 0.0), jnp.where(reached, mu[None, :] * length, 0.0), reached
 
 
 def trace(b, radii, n, mu):
@@ -62,9 +62,8 @@ def trace(b, radii, n, mu):
     b (B,) µm >= 0; radii (S+1,) µm, decreasing, radii[S] = 0 (the core's centre); n (S,)
     refractive indices; mu (S,) 1/µm. Returns eps (B,), depth (B,).
     """
-    outside, sweep, length, reached = _shells(b, radii, n)
-    depth = 2.0 * jnp.sum(jnp.where(reached, mu[None, :] * length, 0.0), axis=1)
-    return jnp.pi - 2.0 * (outside + jnp.sum(sweep, axis=1)), depth
+    outside, sweep, attenuation, _ = _shells(b, radii, n, mu)
+    return jnp.pi - 2.0 * (outside + jnp.sum(sweep, axis=1)), 2.0 * jnp.sum(attenuation, axis=1)
 
 
 def fresnel_trace(b, radii, n, mu):
@@ -81,17 +80,15 @@ def fresnel_trace(b, radii, n, mu):
     it twice, those inside it four times). A reflection preserves b, so every branch lands
     as a ray does (``_model``); multiple reflections (order R^2) are left out.
     """
-    outside, sweep, length, reached = _shells(b, radii, n)
-    attenuation = jnp.where(reached, mu[None, :] * length, 0.0)
+    outside, sweep, attenuation, reached = _shells(b, radii, n, mu)
     n_outside = jnp.concatenate([jnp.ones((1,), n.dtype), n[:-1]])
     along = b[:, None] / jnp.where(radii[:-1] > 0, radii[:-1], 1.0)[None, :]  # b / r_k, (B, S)
     normal = lambda index: jnp.sqrt(jnp.maximum(index[None, :] ** 2 - along**2, 1e-30))
     q_out, q_in = normal(n_outside), normal(n)
     R = jnp.where(reached, jnp.square((q_out - q_in) / (q_out + q_in)), 0.0)
     kept = jnp.square(1.0 - R)  # both crossings of circle k
-    before = jnp.cumprod(jnp.concatenate([jnp.ones_like(kept[:, :1]), kept[:, :-1]], axis=1), axis=1)
-    inward = kept[:, ::-1]  # circles inside k, both crossings:
-    after = jnp.cumprod(jnp.concatenate([jnp.ones_like(kept[:, :1]), inward[:, :-1]], axis=1), axis=1)[:, ::-1]
+    before = _exclusive_cumprod(kept)  # the circles outside k
+    after = _exclusive_cumprod(kept[:, ::-1])[:, ::-1]  # the circles inside k
     half_sweep = outside + jnp.sum(sweep, axis=1)
     half_depth = jnp.sum(attenuation, axis=1)
     inner_sweep = jnp.cumsum(sweep[:, ::-1], axis=1)[:, ::-1]  # from circle k to the nearest point
@@ -104,6 +101,11 @@ def fresnel_trace(b, radii, n, mu):
     share = jnp.concatenate([(before[:, -1] * kept[:, -1])[:, None], before * R,
                              before * kept * R * after * after], axis=1)
     return eps, depth, share
+
+
+def _exclusive_cumprod(x):
+    """Products along axis 1 of the entries before each one (1 for the first)."""
+    return jnp.cumprod(jnp.concatenate([jnp.ones_like(x[:, :1]), x[:, :-1]], axis=1), axis=1)
 
 
 def chords(b, radii):
